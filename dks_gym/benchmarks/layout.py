@@ -1,0 +1,90 @@
+"""Geometry helpers for the paper sensor layouts: cell centres, equidistant cells, snapping, mirroring.
+
+Shared by the CFD benchmarks; each benchmark module states its own layout rule with these pieces.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from .base import Benchmark
+
+
+def cell_centres(extent: tuple[tuple[float, float], ...], grid: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    """Cell-centre coordinates x0 + (i + 1/2) dx of a uniform grid over ``extent``, one array per axis."""
+    return tuple(lo + (np.arange(n) + 0.5) * (hi - lo) / n for (lo, hi), n in zip(extent, grid))
+
+
+def check_sensor_count(m: int, max_sensors: int, name: str) -> int:
+    """Return ``m`` as an int, or raise a ValueError saying which sensor counts the layout supports."""
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)):
+        raise ValueError(f"m (number of sensors) must be an integer, got {m!r} of type {type(m).__name__}")
+    if not 1 <= m <= max_sensors:
+        raise ValueError(
+            f"the {name} paper layout places 1 to {max_sensors} sensors, got m={m}; "
+            "for other counts pass explicit flat grid indices (sensors=...)"
+        )
+    return int(m)
+
+
+def equidistant_cells(first: int, last: int, n: int) -> np.ndarray:
+    """Indices of ``n`` equidistant cells on the cell range first..last (both included).
+
+    The range is cut into ``n`` equal bins and each bin centre is rounded to a cell, halves away from
+    the middle of the range, so a range symmetric about a cell gives a symmetric result. Neighbouring
+    indices differ by floor or ceil of the bin width, hence are distinct while n <= last - first + 1.
+    """
+    if not 1 <= n <= last - first + 1:
+        raise ValueError(f"cannot place {n} distinct cells on the range {first}..{last}")
+    width = (last - first + 1) / n
+    centres = first - 0.5 + width * (np.arange(n) + 0.5)
+    middle = 0.5 * (first + last)
+    rounded = np.where(centres >= middle, np.floor(centres + 0.5), np.ceil(centres - 0.5))
+    return rounded.astype(np.int64)
+
+
+def snap_to_free_cells(targets: np.ndarray, points: np.ndarray, candidates: np.ndarray, taken: set[int]) -> list[int]:
+    """For each target point in turn, the nearest candidate cell not yet taken (greedy, so all distinct).
+
+    ``points`` are the candidates' cell centres (n, ndim), ``candidates`` their flat indices; ``taken``
+    is updated in place. Ties go to the lower flat index, so the result is a pure function of the input.
+    """
+    order = np.argsort(candidates, kind="stable")
+    points, candidates = points[order], candidates[order]
+    free = np.array([c not in taken for c in candidates.tolist()], dtype=bool)
+    chosen = []
+    for target in np.atleast_2d(targets):
+        d2 = np.sum((points - target) ** 2, axis=1)
+        d2[~free] = np.inf
+        k = int(np.argmin(d2))
+        if not np.isfinite(d2[k]):
+            raise ValueError("not enough free candidate cells for the requested sensors")
+        free[k] = False
+        chosen.append(int(candidates[k]))
+        taken.add(int(candidates[k]))
+    return chosen
+
+
+def mirror(flat: list[int] | np.ndarray, grid: tuple[int, ...], axis: int) -> np.ndarray:
+    """Flat indices reflected across the middle of ``axis`` (index i -> n - 1 - i)."""
+    idx = list(np.unravel_index(np.asarray(flat, dtype=np.int64), grid))
+    idx[axis] = grid[axis] - 1 - idx[axis]
+    return np.ravel_multi_index(tuple(idx), grid).astype(np.int64)
+
+
+def surface_mask(solid: np.ndarray) -> np.ndarray:
+    """Non-solid cells that share a face, edge or corner with a solid cell (one cell diagonal away)."""
+    return ndimage.binary_dilation(solid, structure=np.ones((3,) * solid.ndim, dtype=bool)) & ~solid
+
+
+def interleave(*groups: list[int] | np.ndarray) -> np.ndarray:
+    """Element-wise interleaving of equally long index lists: a0, b0, ..., a1, b1, ..."""
+    return np.stack([np.asarray(g, dtype=np.int64) for g in groups], axis=1).reshape(-1)
+
+
+def check_layout(bench: Benchmark, groups: dict[str, np.ndarray], m: int) -> None:
+    """Invariant of every layout rule: m distinct cells, none solid."""
+    flat = np.concatenate(list(groups.values()))
+    if flat.size != m or np.unique(flat).size != m or not np.all(bench.fluid_mask().ravel()[flat]):
+        raise AssertionError(f"{bench.name} layout rule produced an invalid layout for m={m}: {flat.tolist()}")

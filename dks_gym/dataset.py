@@ -1,0 +1,447 @@
+"""The HDF5 dataset layer (SPEC section 1): write atomically, validate on load, read lazily.
+
+Layout of one file (one benchmark, one preset)::
+
+    /train/fields   float32 (n_traj, n_t, C, *grid)   physical units, chunked by trajectory, gzip
+    /train/params   float64 (n_traj,)
+    /test/...       the same
+    /time           (n_t,)
+    /cell_type      int8 (*grid)        absent for burgers
+    /coords/x, /coords/y[, /coords/z]   cell-centre coordinates, one array per axis
+    /stats/mean, /stats/std             float64 (C,), train split, over trajectories, frames and cells
+    attrs: benchmark, channels, observed_channel, scored_channels, param_name, dt, generator (JSON),
+           schema_version, created
+
+Files are written to a temporary name next to the target, under a lock, and renamed into place only when
+complete, so an interrupted or failed generation never leaves a file that looks valid.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+from filelock import FileLock, Timeout
+
+from .benchmarks import BENCHMARKS, Benchmark, GeneratedData, check_preset, get_benchmark
+from .home import dataset_path, ensure_writable
+
+SCHEMA_VERSION = 1
+SPLITS = ("train", "test")
+AXES = ("x", "y", "z")
+REQUIRED_ATTRS = (
+    "benchmark",
+    "channels",
+    "observed_channel",
+    "scored_channels",
+    "param_name",
+    "dt",
+    "generator",
+    "schema_version",
+    "created",
+)
+_CHUNK_BYTES = 1 << 20  # h5py's guidance: chunks of 10 KiB to 1 MiB
+
+
+class SchemaError(ValueError):
+    """A file does not follow the dks-gym HDF5 schema; the message names the offending item."""
+
+
+class DatasetMissing(FileNotFoundError):
+    """No dataset file where one was expected; the message says how to create it."""
+
+
+# Writing ---------------------------------------------------------------------------------------------
+
+
+class _ChannelStats:
+    """Per-channel mean and variance merged trajectory by trajectory (Chan et al.), exact in float64."""
+
+    def __init__(self, n_channels: int) -> None:
+        self.count = 0
+        self.mean = np.zeros(n_channels)
+        self.m2 = np.zeros(n_channels)
+
+    def add(self, fields: np.ndarray) -> None:
+        x = np.moveaxis(np.asarray(fields, dtype=np.float64), 1, 0).reshape(fields.shape[1], -1)
+        n = x.shape[1]
+        mean = x.mean(axis=1)
+        m2 = ((x - mean[:, None]) ** 2).sum(axis=1)
+        delta = mean - self.mean
+        total = self.count + n
+        self.mean = self.mean + delta * n / total
+        self.m2 = self.m2 + m2 + delta**2 * self.count * n / total
+        self.count = total
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(self.m2 / max(self.count - 1, 1))
+
+
+def _chunks(n_t: int, frame_shape: tuple[int, ...]) -> tuple[int, ...]:
+    frame_bytes = 4 * int(np.prod(frame_shape))
+    frames = int(max(1, min(n_t, _CHUNK_BYTES // max(frame_bytes, 1))))
+    return (1, frames, *frame_shape)
+
+
+def write_dataset(
+    data: GeneratedData,
+    benchmark: str | Benchmark,
+    path: str | Path,
+    *,
+    extra_attrs: dict[str, Any] | None = None,
+    lock_timeout: float = -1,
+) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file, then rename) under a file lock.
+
+    ``lock_timeout`` is how long to wait for another writer of the same file (-1: wait forever).
+    """
+    bench = get_benchmark(benchmark)
+    path = Path(path)
+    ensure_writable(path.parent)
+    lock = FileLock(str(path) + ".lock", timeout=lock_timeout)
+    try:
+        lock.acquire()
+    except Timeout as exc:
+        raise RuntimeError(f"another process is writing {path}; wait for it or remove {lock.lock_file}") from exc
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    try:
+        _write(data, bench, tmp, extra_attrs or {})
+        os.replace(tmp, path)
+    finally:
+        # Runs on errors and on KeyboardInterrupt alike: nothing half-written survives.
+        tmp.unlink(missing_ok=True)
+        lock.release()
+    return path
+
+
+def _write(data: GeneratedData, bench: Benchmark, tmp: Path, extra_attrs: dict[str, Any]) -> None:
+    n_t = len(data.time)
+    n_c = len(bench.channels)
+    frame_shape = (n_c, *bench.grid)
+    stats = _ChannelStats(n_c)
+    with h5py.File(tmp, "w") as f:
+        f.attrs["benchmark"] = bench.name
+        f.attrs["channels"] = list(bench.channels)
+        f.attrs["observed_channel"] = bench.observed_channel
+        f.attrs["scored_channels"] = list(bench.scored_channels)
+        f.attrs["param_name"] = bench.param_name
+        f.attrs["dt"] = float(bench.dt)
+        f.attrs["generator"] = json.dumps(data.generator, sort_keys=True, default=_json_default)
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        for key, value in extra_attrs.items():
+            f.attrs[key] = value
+        f.create_dataset("time", data=np.asarray(data.time, dtype=np.float64))
+        if data.cell_type is not None:
+            f.create_dataset("cell_type", data=np.asarray(data.cell_type, dtype=np.int8))
+        coords = f.create_group("coords")
+        for axis, values in zip(AXES, data.coords):
+            coords.create_dataset(axis, data=np.asarray(values, dtype=np.float64))
+        written = {}
+        for split in SPLITS:
+            params = np.asarray(data.params[split], dtype=np.float64)
+            g = f.create_group(split)
+            g.create_dataset("params", data=params)
+            g.create_dataset(
+                "fields",
+                shape=(len(params), n_t, *frame_shape),
+                dtype=np.float32,
+                chunks=_chunks(n_t, frame_shape),
+                compression="gzip",
+                compression_opts=1,
+                shuffle=True,
+            )
+            written[split] = np.zeros(len(params), dtype=bool)
+        for split, index, fields in data.trajectories:
+            fields = np.asarray(fields, dtype=np.float32)
+            if fields.shape != (n_t, *frame_shape):
+                raise ValueError(
+                    f"generator produced {split}[{index}] with shape {fields.shape}, expected {(n_t, *frame_shape)}"
+                )
+            if not np.all(np.isfinite(fields)):
+                raise ValueError(f"generator produced non-finite values in {split}[{index}]")
+            f[split]["fields"][index] = fields
+            written[split][index] = True
+            if split == "train":
+                stats.add(fields)
+        for split, done in written.items():
+            if not done.all():
+                raise ValueError(f"generator left {split} trajectories {np.flatnonzero(~done).tolist()} unwritten")
+        stats_group = f.create_group("stats")
+        stats_group.create_dataset("mean", data=stats.mean)
+        stats_group.create_dataset("std", data=stats.std)
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot store {type(obj).__name__} in the generator metadata")
+
+
+def generate_dataset(
+    benchmark: str | Benchmark,
+    preset: str = "paper",
+    *,
+    path: str | Path | None = None,
+    seed: int = 0,
+    overwrite: bool = False,
+    progress: bool = True,
+    **options: Any,
+) -> Path:
+    """Generate ``benchmark``'s dataset for ``preset`` unless it exists; return the file's path."""
+    bench = get_benchmark(benchmark)
+    check_preset(preset)
+    path = Path(path) if path is not None else dataset_path(bench.name, preset)
+    ensure_writable(path.parent)
+    with FileLock(str(path) + ".generate.lock"):
+        if path.exists() and not overwrite:
+            return path
+        workdir = path.with_name(f"{path.stem}.work")
+        data = bench.generate(preset, seed=seed, workdir=workdir, progress=progress, **options)
+        write_dataset(data, bench, path, extra_attrs={"preset": preset, "seed": seed})
+    return path
+
+
+# Reading ---------------------------------------------------------------------------------------------
+
+
+def _as_str_list(value: Any, name: str) -> list[str]:
+    if isinstance(value, (str, bytes)):
+        text = value.decode() if isinstance(value, bytes) else value
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = [text]
+    try:
+        return [v.decode() if isinstance(v, bytes) else str(v) for v in value]
+    except TypeError as exc:
+        raise SchemaError(f"attribute {name!r} must be a list of strings, got {value!r}") from exc
+
+
+def _as_str(value: Any) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def validate(f: h5py.File) -> Benchmark:
+    """Check an open file against the schema; return its benchmark or raise SchemaError naming the problem."""
+    where = f.filename
+    for name in REQUIRED_ATTRS:
+        if name not in f.attrs:
+            raise SchemaError(f"{where}: missing root attribute {name!r}")
+    name = _as_str(f.attrs["benchmark"])
+    if name not in BENCHMARKS:
+        raise SchemaError(f"{where}: attribute 'benchmark' is {name!r}; expected one of {', '.join(BENCHMARKS)}")
+    bench = BENCHMARKS[name]
+    if int(f.attrs["schema_version"]) != SCHEMA_VERSION:
+        raise SchemaError(
+            f"{where}: schema_version {f.attrs['schema_version']} is not supported (this dks-gym reads {SCHEMA_VERSION})"
+        )
+    channels = _as_str_list(f.attrs["channels"], "channels")
+    if channels != list(bench.channels):
+        raise SchemaError(f"{where}: attribute 'channels' is {channels}; the {name} benchmark has {list(bench.channels)}")
+    observed = _as_str(f.attrs["observed_channel"])
+    if observed not in channels:
+        raise SchemaError(f"{where}: attribute 'observed_channel' {observed!r} is not one of the channels {channels}")
+    scored = _as_str_list(f.attrs["scored_channels"], "scored_channels")
+    if not scored or any(c not in channels for c in scored):
+        raise SchemaError(f"{where}: attribute 'scored_channels' {scored} must be a non-empty subset of {channels}")
+    try:
+        dt = float(f.attrs["dt"])
+    except (TypeError, ValueError) as exc:
+        raise SchemaError(f"{where}: attribute 'dt' must be a number, got {f.attrs['dt']!r}") from exc
+    if not dt > 0:
+        raise SchemaError(f"{where}: attribute 'dt' must be positive, got {dt}")
+    try:
+        json.loads(_as_str(f.attrs["generator"]))
+    except json.JSONDecodeError as exc:
+        raise SchemaError(f"{where}: attribute 'generator' is not valid JSON ({exc})") from exc
+
+    if "time" not in f or f["time"].ndim != 1:
+        raise SchemaError(f"{where}: missing or malformed dataset 'time' (expected shape (n_t,))")
+    n_t = f["time"].shape[0]
+    expected_frame = (len(channels), *bench.grid)
+    for split in SPLITS:
+        if split not in f or not isinstance(f[split], h5py.Group):
+            raise SchemaError(f"{where}: missing group {split!r}")
+        for item in ("fields", "params"):
+            if item not in f[split]:
+                raise SchemaError(f"{where}: missing dataset '{split}/{item}'")
+        fields, params = f[split]["fields"], f[split]["params"]
+        if fields.ndim != 2 + len(expected_frame) or fields.shape[1:] != (n_t, *expected_frame):
+            raise SchemaError(
+                f"{where}: dataset '{split}/fields' has shape {fields.shape}; expected (n_traj, {n_t}, "
+                f"{', '.join(map(str, expected_frame))}) for {name}"
+            )
+        if not np.issubdtype(fields.dtype, np.floating):
+            raise SchemaError(f"{where}: dataset '{split}/fields' has dtype {fields.dtype}; expected float32")
+        if params.shape != (fields.shape[0],) or not np.issubdtype(params.dtype, np.floating):
+            raise SchemaError(
+                f"{where}: dataset '{split}/params' has shape {params.shape} and dtype {params.dtype}; "
+                f"expected float64 ({fields.shape[0]},), one value per trajectory"
+            )
+    if bench.cell_type_codes:
+        if "cell_type" not in f:
+            raise SchemaError(f"{where}: missing dataset 'cell_type' (required for {name})")
+        ct = f["cell_type"]
+        if ct.shape != bench.grid or not np.issubdtype(ct.dtype, np.integer):
+            raise SchemaError(
+                f"{where}: dataset 'cell_type' has shape {ct.shape} and dtype {ct.dtype}; expected int8 {bench.grid}"
+            )
+    if "coords" not in f:
+        raise SchemaError(f"{where}: missing group 'coords'")
+    for axis, n in zip(AXES, bench.grid):
+        if axis not in f["coords"] or f["coords"][axis].shape != (n,):
+            raise SchemaError(f"{where}: missing or malformed dataset 'coords/{axis}' (expected shape ({n},))")
+    for item in ("mean", "std"):
+        if "stats" not in f or item not in f["stats"] or f["stats"][item].shape != (len(channels),):
+            raise SchemaError(f"{where}: missing or malformed dataset 'stats/{item}' (expected shape ({len(channels)},))")
+    if np.any(np.asarray(f["stats"]["std"]) <= 0):
+        raise SchemaError(f"{where}: dataset 'stats/std' has non-positive entries")
+    return bench
+
+
+class Dataset:
+    """A validated dks-gym HDF5 file, read lazily.
+
+    The file handle is reopened after a fork, so a Dataset can be shared with subprocess vector envs.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise DatasetMissing(f"no dataset file at {self.path}")
+        self._file: h5py.File | None = None
+        self._pid = -1
+        f = self._h5
+        self.benchmark = validate(f)
+        self.channels = tuple(_as_str_list(f.attrs["channels"], "channels"))
+        self.observed_channel = _as_str(f.attrs["observed_channel"])
+        self.scored_channels = tuple(_as_str_list(f.attrs["scored_channels"], "scored_channels"))
+        self.param_name = _as_str(f.attrs["param_name"])
+        self.dt = float(f.attrs["dt"])
+        self.generator = json.loads(_as_str(f.attrs["generator"]))
+        self.preset = _as_str(f.attrs["preset"]) if "preset" in f.attrs else None
+        self.time = np.asarray(f["time"])
+        self.cell_type = np.asarray(f["cell_type"], dtype=np.int8) if "cell_type" in f else None
+        self.coords = tuple(np.asarray(f["coords"][a]) for a in AXES[: self.benchmark.ndim])
+        self.stats_mean = np.asarray(f["stats"]["mean"], dtype=np.float64)
+        self.stats_std = np.asarray(f["stats"]["std"], dtype=np.float64)
+
+    @property
+    def _h5(self) -> h5py.File:
+        if self._file is None or self._pid != os.getpid():
+            try:
+                self._file = h5py.File(self.path, "r")
+            except OSError as exc:
+                raise SchemaError(f"{self.path} is not a readable HDF5 file ({exc})") from exc
+            self._pid = os.getpid()
+        return self._file
+
+    def _check_split(self, split: str) -> str:
+        if split not in SPLITS:
+            raise ValueError(f"unknown split {split!r}; choose 'train' or 'test'")
+        return split
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.time)
+
+    @property
+    def grid(self) -> tuple[int, ...]:
+        return self.benchmark.grid
+
+    def fields(self, split: str) -> h5py.Dataset:
+        """The lazy (n_traj, n_t, C, *grid) array of ``split``."""
+        return self._h5[self._check_split(split)]["fields"]
+
+    def params(self, split: str) -> np.ndarray:
+        """Parameter value of every trajectory of ``split``."""
+        return np.asarray(self._h5[self._check_split(split)]["params"], dtype=np.float64)
+
+    def n_trajectories(self, split: str) -> int:
+        return int(self.fields(split).shape[0])
+
+    def trajectory(self, split: str, index: int) -> np.ndarray:
+        """One whole trajectory (n_t, C, *grid), float32, physical units."""
+        n = self.n_trajectories(split)
+        if not 0 <= int(index) < n:
+            raise IndexError(f"trajectory {index} is out of range for split {split!r} with {n} trajectories")
+        return np.asarray(self.fields(split)[int(index)], dtype=np.float32)
+
+    def frame(self, split: str, index: int, k: int) -> np.ndarray:
+        """Frame ``k`` of one trajectory, (C, *grid)."""
+        return np.asarray(self.fields(split)[int(index), int(k)], dtype=np.float32)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> "Dataset":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_file"], state["_pid"] = None, -1
+        return state
+
+    def summary(self) -> str:
+        """A human-readable description of the file."""
+        lines = [
+            f"file:        {self.path}",
+            f"benchmark:   {self.benchmark.name} (preset {self.preset or 'unknown'})",
+            f"grid:        {' x '.join(map(str, self.grid))}",
+            f"channels:    {', '.join(self.channels)} (observed {self.observed_channel}; "
+            f"scored {', '.join(self.scored_channels)})",
+            f"frames:      {self.n_frames}, dt = {self.dt:g}, t = {self.time[0]:g} .. {self.time[-1]:g}",
+        ]
+        for split in SPLITS:
+            p = self.params(split)
+            lines.append(
+                f"{split + ':':<12} {len(p)} trajectories, {self.param_name} in [{p.min():.4g}, {p.max():.4g}]"
+            )
+        for c, m, s in zip(self.channels, self.stats_mean, self.stats_std):
+            lines.append(f"stats {c:<8} mean {m: .4e}  std {s:.4e}")
+        lines.append(f"generator:   {json.dumps(self.generator, sort_keys=True)}")
+        return "\n".join(lines)
+
+
+def load_dataset(benchmark: str, preset: str = "paper", path: str | Path | None = None) -> Dataset:
+    """Open a benchmark's dataset from the data home (or ``path``), with a clear error if it is missing."""
+    bench = get_benchmark(benchmark)
+    check_preset(preset)
+    path = Path(path) if path is not None else dataset_path(bench.name, preset)
+    if not path.exists():
+        raise DatasetMissing(missing_message(bench, preset, path))
+    ds = Dataset(path)
+    if ds.benchmark.name != bench.name:
+        raise SchemaError(f"{path} holds the {ds.benchmark.name} benchmark, not {bench.name}")
+    return ds
+
+
+def missing_message(bench: Benchmark, preset: str, path: Path) -> str:
+    """What to tell a user whose dataset file is missing."""
+    if bench.generator_available:
+        return (
+            f"no {bench.name} dataset at {path}. Generate it with `dks-gym data generate {bench.name} "
+            f"--preset {preset}` (or pass data_path= to use a file in the dks-gym schema)."
+        )
+    return (
+        f"no {bench.name} dataset at {path}, and the {bench.name} data generator is not part of this version of "
+        f"dks-gym yet. Once it is, `dks-gym data generate {bench.name} --preset {preset}` will create it; until then "
+        "pass data_path= with a file in the dks-gym HDF5 schema (see `dks-gym data info`)."
+    )

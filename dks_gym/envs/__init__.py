@@ -1,0 +1,18 @@
+"""Gymnasium environments: ``DKS/Burgers-v0``, ``DKS/Cylinder-v0``, ``DKS/Dambreak-v0``, ``DKS/Sphere-v0``."""
+
+from __future__ import annotations
+
+from gymnasium.envs.registration import register, registry
+
+from ..benchmarks import BENCHMARKS
+from .sensing import SENSOR_MODES, SensingEnv
+
+
+def register_envs() -> None:
+    """Register the four environment ids with Gymnasium (idempotent)."""
+    for name, bench in BENCHMARKS.items():
+        if bench.env_id not in registry:
+            register(id=bench.env_id, entry_point="dks_gym.envs.sensing:SensingEnv", kwargs={"benchmark": name})
+
+
+__all__ = ["SENSOR_MODES", "SensingEnv", "register_envs"]

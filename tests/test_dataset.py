@@ -1,0 +1,213 @@
+"""The HDF5 dataset layer: schema round trip, files written elsewhere, rejection of malformed files, atomicity."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from filelock import FileLock
+
+from dks_gym.benchmarks import GeneratedData
+from dks_gym.cli import main
+from dks_gym.dataset import Dataset, DatasetMissing, SchemaError, load_dataset, write_dataset
+from dks_gym.home import DataHomeError, dataset_path
+
+from .conftest import synthetic_data
+
+
+def _arrays(data: GeneratedData) -> dict[tuple[str, int], np.ndarray]:
+    return {(s, i): a for s, i, a in data.trajectories}
+
+
+def test_round_trip_and_train_statistics(tmp_path: Path) -> None:
+    data = synthetic_data("cylinder", n_train=3, n_test=2, n_t=5)
+    arrays = _arrays(synthetic_data("cylinder", n_train=3, n_test=2, n_t=5))
+    path = write_dataset(data, "cylinder", tmp_path / "c.h5")
+    with Dataset(path) as ds:
+        assert ds.benchmark.name == "cylinder"
+        assert ds.channels == ("u", "v", "p") and ds.observed_channel == "p"
+        assert ds.dt == 0.5 and ds.param_name == "Re"
+        np.testing.assert_array_equal(ds.params("train"), data.params["train"])
+        np.testing.assert_array_equal(ds.cell_type, data.cell_type)
+        for (split, i), arr in arrays.items():
+            np.testing.assert_array_equal(ds.trajectory(split, i), arr)
+        np.testing.assert_array_equal(ds.frame("test", 1, 3), arrays[("test", 1)][3])
+        # Statistics over the train split only, per channel, computed independently in one pass.
+        train = np.stack([arrays[("train", i)] for i in range(3)]).astype(np.float64)
+        per_channel = np.moveaxis(train, 2, 0).reshape(3, -1)
+        np.testing.assert_allclose(ds.stats_mean, per_channel.mean(axis=1), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(ds.stats_std, per_channel.std(axis=1, ddof=1), rtol=1e-10)
+        with h5py.File(path) as f:
+            assert f["train/fields"].chunks[0] == 1  # chunked by trajectory
+            assert f["train/fields"].compression == "gzip"
+
+
+def _write_by_hand(path: Path, n_t: int = 3) -> None:
+    """A Burgers file in the schema, written with bare h5py as another tool would."""
+    rng = np.random.default_rng(1)
+    with h5py.File(path, "w") as f:
+        f.attrs.update(
+            benchmark="burgers",
+            channels=json.dumps(["u"]),
+            observed_channel="u",
+            scored_channels=["u"],
+            param_name="nu",
+            dt=0.005,
+            generator=json.dumps({"name": "somebody else"}),
+            schema_version=1,
+            created="2026-01-01",
+        )
+        f["time"] = 0.005 * np.arange(n_t)
+        f["coords/x"] = 2 * np.pi * np.arange(1024) / 1024
+        for split, n in (("train", 2), ("test", 1)):
+            f[f"{split}/fields"] = rng.standard_normal((n, n_t, 1, 1024)).astype(np.float32)
+            f[f"{split}/params"] = rng.uniform(0.01, 1, n)
+        f["stats/mean"] = np.zeros(1)
+        f["stats/std"] = np.ones(1)
+
+
+def test_file_written_elsewhere_loads_unchanged(tmp_path: Path) -> None:
+    path = tmp_path / "foreign.h5"
+    _write_by_hand(path)
+    with h5py.File(path) as f:
+        expected = f["test/fields"][0]
+    with Dataset(path) as ds:
+        assert ds.channels == ("u",) and ds.preset is None
+        np.testing.assert_array_equal(ds.trajectory("test", 0), expected)
+        assert ds.generator == {"name": "somebody else"}
+
+
+@pytest.mark.parametrize(
+    "mutate, item",
+    [
+        (lambda f: f.attrs.__delitem__("benchmark"), "benchmark"),
+        (lambda f: f.attrs.__setitem__("benchmark", "pendulum"), "benchmark"),
+        (lambda f: f.attrs.__setitem__("channels", ["v"]), "channels"),
+        (lambda f: f.attrs.__setitem__("generator", "{not json"), "generator"),
+        (lambda f: f.attrs.__setitem__("schema_version", 99), "schema_version"),
+        (lambda f: f.attrs.__setitem__("dt", -1.0), "dt"),
+        (lambda f: f.__delitem__("test"), "test"),
+        (lambda f: f.__delitem__("train/params"), "train/params"),
+        (lambda f: f.__delitem__("time"), "time"),
+        (lambda f: f.__delitem__("coords/x"), "coords/x"),
+        (lambda f: f.__delitem__("stats/std"), "stats/std"),
+        (lambda f: (f.__delitem__("train/fields"), f.create_dataset("train/fields", data=np.zeros((2, 3, 1, 512), "f4"))), "train/fields"),
+        (lambda f: (f.__delitem__("test/params"), f.create_dataset("test/params", data=np.zeros(5))), "test/params"),
+    ],
+)
+def test_malformed_files_are_rejected_naming_the_item(tmp_path: Path, mutate, item: str) -> None:
+    path = tmp_path / "bad.h5"
+    _write_by_hand(path)
+    with h5py.File(path, "a") as f:
+        mutate(f)
+    with pytest.raises(SchemaError, match=item.replace("/", "/")):
+        Dataset(path)
+
+
+def test_cfd_file_without_cell_type_is_rejected(make_synthetic) -> None:
+    path = make_synthetic("dambreak")
+    with h5py.File(path, "a") as f:
+        del f["cell_type"]
+    with pytest.raises(SchemaError, match="cell_type"):
+        Dataset(path)
+
+
+def test_not_an_hdf5_file(tmp_path: Path) -> None:
+    path = tmp_path / "junk.h5"
+    path.write_bytes(b"this is not hdf5")
+    with pytest.raises(SchemaError, match="not a readable HDF5 file"):
+        Dataset(path)
+
+
+def _failing(data: GeneratedData, exc: BaseException) -> GeneratedData:
+    original = data.trajectories
+
+    def trajectories():
+        for n, item in enumerate(original):
+            if n == 2:
+                raise exc
+            yield item
+
+    data.trajectories = trajectories()
+    return data
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("solver blew up"), KeyboardInterrupt()])
+def test_failed_or_interrupted_write_leaves_nothing(tmp_path: Path, exc: BaseException) -> None:
+    target = tmp_path / "out.h5"
+    with pytest.raises(type(exc)):
+        write_dataset(_failing(synthetic_data("burgers", n_train=3), exc), "burgers", target)
+    assert not target.exists()
+    assert [p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")] == []
+
+
+def test_bad_generator_output_is_refused(tmp_path: Path) -> None:
+    data = synthetic_data("burgers")
+    data.trajectories = iter([("train", 0, np.full((4, 1, 1024), np.nan, np.float32))])
+    with pytest.raises(ValueError, match="non-finite"):
+        write_dataset(data, "burgers", tmp_path / "nan.h5")
+    data = synthetic_data("burgers")
+    data.trajectories = iter([("train", 0, np.zeros((4, 1, 1000), np.float32))])
+    with pytest.raises(ValueError, match="shape"):
+        write_dataset(data, "burgers", tmp_path / "shape.h5")
+    assert not (tmp_path / "nan.h5").exists() and not (tmp_path / "shape.h5").exists()
+
+
+def test_lock_keeps_a_second_writer_out(tmp_path: Path) -> None:
+    target = tmp_path / "locked.h5"
+    with FileLock(str(target) + ".lock"):
+        with pytest.raises(RuntimeError, match="another process is writing"):
+            write_dataset(synthetic_data("burgers"), "burgers", target, lock_timeout=0.1)
+    assert not target.exists()
+
+
+def test_unwritable_data_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    # A path below a regular file can never be created, even by root (permission bits would not stop root).
+    monkeypatch.setenv("DKS_GYM_HOME", str(blocker / "home"))
+    from dks_gym.dataset import generate_dataset
+
+    with pytest.raises(DataHomeError, match="DKS_GYM_HOME"):
+        generate_dataset("burgers", "small", progress=False)
+
+
+def test_missing_dataset_names_the_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path))
+    with pytest.raises(DatasetMissing, match="dks-gym data generate burgers --preset small"):
+        load_dataset("burgers", "small")
+    assert dataset_path("burgers", "small") == tmp_path / "data" / "burgers-small.h5"
+    with pytest.raises(ValueError, match="unknown preset"):
+        load_dataset("burgers", "huge")
+    with pytest.raises(ValueError, match="unknown benchmark"):
+        load_dataset("pendulum")
+
+
+def test_cli_data_info(tmp_path: Path) -> None:
+    good = tmp_path / "good.h5"
+    _write_by_hand(good)
+    result = CliRunner().invoke(main, ["data", "info", str(good)])
+    assert result.exit_code == 0, result.output
+    assert "burgers" in result.output and "2 trajectories" in result.output
+    bad = tmp_path / "bad.h5"
+    _write_by_hand(bad)
+    with h5py.File(bad, "a") as f:
+        del f["stats"]
+    result = CliRunner().invoke(main, ["data", "info", str(bad)])
+    assert result.exit_code == 1 and "stats/mean" in result.output
+
+
+def test_dataset_survives_fork_style_reopen(tmp_path: Path) -> None:
+    import pickle
+
+    path = tmp_path / "f.h5"
+    _write_by_hand(path)
+    ds = Dataset(path)
+    clone = pickle.loads(pickle.dumps(ds))
+    np.testing.assert_array_equal(clone.trajectory("train", 1), ds.trajectory("train", 1))
+    assert os.fspath(clone.path) == os.fspath(path)

@@ -1,0 +1,212 @@
+"""SensingEnv and the four registered ids: Gymnasium compliance, seeding, the noise model, select mode, rendering."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import h5py
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import dks_gym  # noqa: F401  (registers the ids)
+from dks_gym.benchmarks import BENCHMARKS, get_benchmark
+from dks_gym.dataset import DatasetMissing, SchemaError
+
+
+def _episode(env, seed=None, options=None, actions=None):
+    obs, info = env.reset(seed=seed, options=options)
+    out, infos = [obs], [info]
+    for k in range(env.unwrapped.dataset.n_frames - 1):
+        action = None if actions is None else actions[k]
+        obs, reward, terminated, truncated, info = env.step(action)
+        assert reward == 0.0 and not terminated
+        out.append(obs)
+        infos.append(info)
+    assert truncated
+    return np.stack(out), infos
+
+
+def test_burgers_env_passes_check_env(burgers_small: Path) -> None:
+    env = gym.make("DKS/Burgers-v0", preset="small")
+    check_env(env.unwrapped, skip_render_check=False)
+    check_env(gym.make("DKS/Burgers-v0", preset="small", sensor_mode="select").unwrapped)
+
+
+def test_episode_walks_every_frame_and_truncates(burgers_small: Path) -> None:
+    env = gym.make("DKS/Burgers-v0", preset="small")
+    obs, infos = _episode(env, seed=0)
+    ds = env.unwrapped.dataset
+    assert obs.shape == (ds.n_frames, 16) and obs.dtype == np.float32
+    assert [i["time_index"] for i in infos] == list(range(ds.n_frames))
+    np.testing.assert_allclose([i["time"] for i in infos], ds.time)
+    assert infos[0]["param_name"] == "nu" and infos[0]["split"] == "test"
+    np.testing.assert_array_equal(infos[0]["sensors"], get_benchmark("burgers").paper_layout(16))
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(None)
+
+
+def test_same_seed_same_observations(burgers_small: Path) -> None:
+    env = gym.make("DKS/Burgers-v0", preset="small")
+    a, ia = _episode(env, seed=7)
+    b, ib = _episode(env, seed=7)
+    c, ic = _episode(env, seed=8, options={"trajectory": ia[0]["trajectory"]})
+    np.testing.assert_array_equal(a, b)
+    assert ia[0]["trajectory"] == ib[0]["trajectory"]
+    assert not np.allclose(a, c)  # new seed, new noise on the same trajectory
+    # An unseeded reset after a seeded one continues deterministically.
+    env.reset(seed=3)
+    x = env.reset()[0]
+    env.reset(seed=3)
+    np.testing.assert_array_equal(x, env.reset()[0])
+
+
+def test_true_state_and_noise_statistics(burgers_small: Path) -> None:
+    env = gym.make("DKS/Burgers-v0", preset="small", n_sensors=64)
+    base = env.unwrapped
+    with h5py.File(burgers_small) as f:
+        truth = f["test/fields"][()]
+    residuals, sigmas = [], []
+    for traj in range(truth.shape[0]):
+        obs, infos = _episode(env, seed=11 + traj, options={"trajectory": traj})
+        clean = truth[traj, :, 0][:, infos[0]["sensors"]]
+        # Definition (SPEC 2): sigma = 0.2 * max |u| over every cell and frame of the trajectory.
+        sigma = 0.2 * np.abs(truth[traj, :, 0]).max()
+        assert infos[0]["sigma"] == pytest.approx(sigma, rel=1e-6)
+        residuals.append((obs - clean) / sigma)
+        sigmas.append(sigma)
+    np.testing.assert_allclose(base.true_state, truth[-1, -1], rtol=0, atol=0)
+    z = np.concatenate([r.ravel() for r in residuals])
+    n = z.size  # 3 trajectories x 100 frames x 64 sensors
+    assert abs(z.mean()) < 4 / np.sqrt(n)
+    assert abs(z.std() - 1.0) < 4 * np.sqrt(0.5 / n)
+
+
+def test_noise_does_not_depend_on_the_layout(burgers_small: Path) -> None:
+    """A cell reads the same noise whatever the rest of the layout is, so layouts compare fairly."""
+    env_a = gym.make("DKS/Burgers-v0", preset="small", sensors=[5, 100, 700])
+    env_b = gym.make("DKS/Burgers-v0", preset="small", sensors=[700, 3, 4, 5])
+    a, _ = _episode(env_a, seed=1, options={"trajectory": 0})
+    b, _ = _episode(env_b, seed=1, options={"trajectory": 0})
+    np.testing.assert_array_equal(a[:, [0, 2]], b[:, [3, 0]])
+
+
+def test_noise_level_zero_reads_the_truth(burgers_small: Path) -> None:
+    env = gym.make("DKS/Burgers-v0", preset="small", noise_level=0.0)
+    obs, info = env.reset(seed=0)
+    np.testing.assert_array_equal(obs, env.unwrapped.true_state[0, info["sensors"]])
+
+
+def test_select_mode_reads_the_chosen_cells(burgers_small: Path) -> None:
+    candidates = np.arange(0, 1024, 8)
+    env = gym.make("DKS/Burgers-v0", preset="small", sensor_mode="select", candidates=candidates,
+                   n_sensors=4, noise_level=0.0)
+    assert env.action_space == gym.spaces.MultiDiscrete([128] * 4)
+    env.reset(seed=0)
+    action = np.array([0, 5, 5, 127])
+    obs, _, _, _, info = env.step(action)
+    np.testing.assert_array_equal(info["sensors"], candidates[action])
+    np.testing.assert_array_equal(obs, env.unwrapped.true_state[0, candidates[action]])
+    for bad in (np.array([0, 1, 2]), np.array([0, 1, 2, 128]), np.array([0, 1, 2, -1]), np.array([0.0, 1, 2, 3])):
+        with pytest.raises(ValueError, match="sensor_mode='select'|must lie in"):
+            env.step(bad)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"split": "validation"}, "unknown split"),
+        ({"noise_level": -0.1}, "noise_level"),
+        ({"sensor_mode": "adaptive"}, "sensor_mode"),
+        ({"n_sensors": 2000}, "only 1024"),
+        ({"sensor_mode": "select", "candidates": [1, 2, 3], "n_sensors": 4}, "only 3 candidate"),
+        ({"sensors": [0, 1024]}, r"\[0, 1024\)"),
+        ({"sensors": [[1, 2]]}, "flat grid indices"),
+        ({"candidates": [1, 1, 2]}, "repeated"),
+        ({"n_sensors": 0}, "positive integer"),
+        ({"preset": "huge"}, "unknown preset"),
+    ],
+)
+def test_bad_construction_arguments(burgers_small: Path, kwargs: dict, match: str) -> None:
+    kwargs.setdefault("preset", "small")
+    with pytest.raises(ValueError, match=match):
+        gym.make("DKS/Burgers-v0", **kwargs)
+
+
+def test_bad_reset_and_step_arguments(burgers_small: Path) -> None:
+    # Gymnasium's passive checker cannot continue after a step that raised, so it is off here.
+    env = gym.make("DKS/Burgers-v0", preset="small", disable_env_checker=True)
+    with pytest.raises(ValueError, match="trajectory"):
+        env.reset(options={"trajectory": 99})
+    with pytest.raises(ValueError, match="unknown reset options"):
+        env.reset(options={"trajectroy": 0})
+    with pytest.raises(ValueError, match="16"):
+        env.reset(options={"sensors": [1, 2, 3]})
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="fixed"):
+        env.step(np.array([1, 2]))
+    obs, *_ = env.step(0)
+    assert obs.shape == (16,)
+
+
+def test_unsupported_render_mode(burgers_small: Path) -> None:
+    with pytest.raises(ValueError, match="render_mode"):
+        dks_gym.SensingEnv("burgers", preset="small", render_mode="ansi")
+
+
+def test_unknown_benchmark() -> None:
+    with pytest.raises(ValueError, match="unknown benchmark"):
+        dks_gym.SensingEnv("pendulum")
+
+
+def test_missing_data_says_how_to_get_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path))
+    with pytest.raises(DatasetMissing, match="dks-gym data generate burgers"):
+        gym.make("DKS/Burgers-v0")
+    for name, bench in BENCHMARKS.items():
+        if not bench.generator_available:
+            with pytest.raises(DatasetMissing, match=f"generator is not part of this version.*dks-gym data generate {name}"):
+                gym.make(bench.env_id)
+
+
+def test_wrong_benchmark_file_is_refused(burgers_small: Path) -> None:
+    with pytest.raises(SchemaError, match="holds the burgers benchmark"):
+        gym.make("DKS/Cylinder-v0", data_path=str(burgers_small))
+
+
+@pytest.mark.parametrize("name", ["cylinder", "dambreak", "sphere"])
+def test_cfd_shaped_envs_with_a_schema_file(make_synthetic, name: str) -> None:
+    """Every id works on any file in the schema; solids are never sensors, renders have the right shape."""
+    bench = get_benchmark(name)
+    path = make_synthetic(name, n_t=3)
+    env = gym.make(bench.env_id, data_path=str(path), render_mode="rgb_array")
+    check_env(env.unwrapped, skip_render_check=True)
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (16,)
+    assert env.unwrapped.true_state.shape == (len(bench.channels), *bench.grid)
+    frame = env.render()
+    assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8 and frame.shape[0] > 100
+    solid = ~bench.fluid_mask().ravel()
+    assert not solid[info["sensors"]].any()
+    if solid.any():
+        with pytest.raises(ValueError, match="solid body"):
+            gym.make(bench.env_id, data_path=str(path), sensors=np.flatnonzero(solid)[:1])
+    sel = gym.make(bench.env_id, data_path=str(path), sensor_mode="select")
+    assert sel.action_space.nvec[0] == int((~solid).sum())
+
+
+def test_burgers_render(burgers_small: Path) -> None:
+    env = gym.make("DKS/Burgers-v0", preset="small", render_mode="rgb_array")
+    env.reset(seed=0)
+    frame = env.render()
+    assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
+    assert frame.std() > 0  # something was drawn
+
+
+def test_vector_env(burgers_small: Path) -> None:
+    envs = gym.make_vec("DKS/Burgers-v0", num_envs=3, vectorization_mode="sync", preset="small")
+    obs, info = envs.reset(seed=[0, 1, 2])
+    assert obs.shape == (3, 16)
+    obs, *_ = envs.step(np.zeros(3, dtype=np.int64))
+    assert obs.shape == (3, 16)
