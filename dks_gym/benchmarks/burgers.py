@@ -85,10 +85,10 @@ def solve(
     times = _check_times(times)
     if isinstance(nx, bool) or not isinstance(nx, (int, np.integer)) or nx < 3:
         raise ValueError(f"nx must be an integer >= 3, got {nx!r}")
-    if not 0 < courant <= 1 or not 0 < diffusive_factor <= 0.5:
+    if not (courant > 0 and diffusive_factor > 0 and courant + 2 * diffusive_factor <= 1 + 1e-12):
         raise ValueError(
-            f"need 0 < courant <= 1 and 0 < diffusive_factor <= 0.5 for a stable scheme, "
-            f"got courant={courant}, diffusive_factor={diffusive_factor}"
+            "need courant > 0, diffusive_factor > 0 and courant + 2 * diffusive_factor <= 1 for a stable, "
+            f"monotone scheme; got courant={courant}, diffusive_factor={diffusive_factor}"
         )
     nx = int(nx)
     dx = LENGTH / nx
