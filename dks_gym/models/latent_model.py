@@ -1,0 +1,404 @@
+"""The uniform latent-model interface the filters use, the three neural models, and :func:`build_model`.
+
+Every model is a ``torch.nn.Module`` with attributes ``benchmark``, ``kind`` ("koopman", "mlp", "xlstm",
+"pdmd"), ``r``, ``dt``, ``grid`` and the methods (all batched over a leading dimension B)::
+
+    encode(x, mu)            x (B, C, *grid) physical, mu (B,)  -> z (B, r)
+    decode(z, mu)            z (B, r)                           -> x (B, C, *grid) physical
+    forecast(z, mu)          z_k (B, r)                         -> z_{k+1} (B, r)        (Eq. 5)
+    forecast_jacobian(z, mu)                                    -> dF/dz (B, r, r)
+    observe(z, mu, sensors, channel)                            -> S(decode(z)) (B, m)   (Eq. 12)
+    rollout(z0, mu, n_steps)                                    -> (B, n_steps + 1, r)
+
+Fields enter and leave in physical units: each model holds the per-channel train-split mean and std as
+buffers and normalizes inside ``encode`` and de-normalizes inside ``decode``. Where the benchmark has a
+cell type, the encoder appends it (a buffer, raw integer codes as float) as an extra input channel; the
+sphere decoder also outputs a cell-type channel (the paper's 5 output channels), which ``decode`` drops
+and :meth:`NeuralLatentModel.reconstruction_target` keeps, so a training loss on
+``decode_normalized`` includes it.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from .backbones import ConvDecoder, ConvEncoder, ParametricEncoder
+from .embedding import ParameterEmbedding
+from .koopman import KoopmanOperator
+from .mlp import MLPTransition
+from .presets import (
+    EMBEDDING_HIDDEN_LAYERS,
+    KOOPMAN_HIDDEN_LAYERS,
+    MLP_HIDDEN_LAYERS,
+    MLP_HIDDEN_WIDTH,
+    MODEL_KINDS,
+    MODEL_PRESETS,
+    XLSTM_CONV_KERNEL,
+    XLSTM_EMBEDDING_DIM,
+    XLSTM_NUM_HEADS,
+    XLSTM_QKV_BLOCKSIZE,
+    BenchmarkShape,
+    backbone_spec,
+    benchmark_shape,
+)
+from .xlstm import XLSTMTransition
+
+ArrayLike = Any  # torch.Tensor, np.ndarray, float or sequence of floats
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of parameters of ``module`` (trainable or not)."""
+    return sum(p.numel() for p in module.parameters())
+
+
+class LatentModel(nn.Module):
+    """Base class: benchmark geometry, normalization buffers, input checks and the shared helpers."""
+
+    kind: str = ""
+
+    def __init__(
+        self,
+        shape: BenchmarkShape,
+        r: int,
+        *,
+        dt: float | None = None,
+        stats_mean: ArrayLike | None = None,
+        stats_std: ArrayLike | None = None,
+    ) -> None:
+        super().__init__()
+        if int(r) != r or r < 1:
+            raise ValueError(f"latent dimension r must be a positive integer, got {r!r}")
+        self.shape = shape
+        self.benchmark = shape.name
+        self.r = int(r)
+        self.dt = float(shape.dt if dt is None else dt)
+        if not self.dt > 0:
+            raise ValueError(f"dt must be positive, got {self.dt}")
+        self.grid = shape.grid
+        self.n_fields = shape.n_fields
+        c = shape.n_fields
+        mean = torch.zeros(c) if stats_mean is None else self._stats_tensor(stats_mean, "stats_mean")
+        std = torch.ones(c) if stats_std is None else self._stats_tensor(stats_std, "stats_std")
+        if stats_std is not None and not bool((std > 0).all()):
+            raise ValueError(f"stats_std must be positive for every channel, got {std.tolist()}")
+        self.register_buffer("stats_mean", mean)
+        self.register_buffer("stats_std", std)
+
+    def _stats_tensor(self, values: ArrayLike, name: str) -> torch.Tensor:
+        t = torch.as_tensor(np.asarray(values, dtype=np.float32))
+        if t.shape != (self.n_fields,):
+            raise ValueError(
+                f"{name} must have one value per channel of {self.benchmark} ({self.n_fields}), got shape "
+                f"{tuple(t.shape)}; pass the dataset's ds.stats_mean / ds.stats_std"
+            )
+        return t.to(torch.get_default_device())
+
+    # Checks ---------------------------------------------------------------------------------------
+    def _fields(self, x: ArrayLike) -> torch.Tensor:
+        x = torch.as_tensor(x, device=self.stats_mean.device)
+        if not x.is_floating_point():
+            x = x.to(self.stats_mean.dtype)
+        expected = (self.n_fields, *self.grid)
+        if x.ndim != len(expected) + 1 or tuple(x.shape[1:]) != expected:
+            raise ValueError(
+                f"{self.benchmark} fields must have shape (B, {', '.join(map(str, expected))}) in physical "
+                f"units, got {tuple(x.shape)}; add a leading batch axis with x[None] for a single frame"
+            )
+        return x
+
+    def _latent(self, z: ArrayLike) -> torch.Tensor:
+        z = torch.as_tensor(z, device=self.stats_mean.device)
+        if z.ndim != 2 or z.shape[1] != self.r:
+            raise ValueError(f"latent states must have shape (B, {self.r}), got {tuple(z.shape)}")
+        return z
+
+    def _param(self, mu: ArrayLike, batch: int) -> torch.Tensor:
+        mu = torch.as_tensor(mu, device=self.stats_mean.device)
+        if not mu.is_floating_point():
+            mu = mu.to(torch.float64)
+        if mu.ndim == 0:
+            mu = mu.expand(batch)
+        if mu.shape != (batch,):
+            raise ValueError(f"mu must be a scalar or have shape ({batch},) to match the batch, got {tuple(mu.shape)}")
+        return mu
+
+    # Normalization --------------------------------------------------------------------------------
+    def _channel_view(self, t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        return t.to(dtype).view(-1, *([1] * len(self.grid)))
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        """Physical fields (B, C, *grid) -> per-channel standardized fields."""
+        return (x - self._channel_view(self.stats_mean, x.dtype)) / self._channel_view(self.stats_std, x.dtype)
+
+    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
+        """Standardized fields (B, C, *grid) -> physical units."""
+        return x * self._channel_view(self.stats_std, x.dtype) + self._channel_view(self.stats_mean, x.dtype)
+
+    # Interface ------------------------------------------------------------------------------------
+    def encode(self, x: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """Physical fields (B, C, *grid) -> latent states (B, r)."""
+        raise NotImplementedError
+
+    def decode(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """Latent states (B, r) -> physical fields (B, C, *grid)."""
+        raise NotImplementedError
+
+    def forecast(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """One latent step z_{k+1} = F(z_k, mu) (Eq. 5), (B, r) -> (B, r)."""
+        raise NotImplementedError
+
+    def forecast_jacobian(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """dF/dz at z, (B, r, r)."""
+        raise NotImplementedError
+
+    def rollout(self, z0: ArrayLike, mu: ArrayLike, n_steps: int) -> torch.Tensor:
+        """Open-loop latent trajectory (B, n_steps + 1, r) starting at z0 (the forward run)."""
+        z = self._latent(z0)
+        mu = self._param(mu, z.shape[0])
+        states = [z]
+        for _ in range(int(n_steps)):
+            states.append(self.forecast(states[-1], mu))
+        return torch.stack(states, dim=1)
+
+    def observe(self, z: ArrayLike, mu: ArrayLike, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
+        """h(z) = S(decode(z)): the decoded ``channel`` (index or name) at flat C-order grid ``sensors``, (B, m)."""
+        idx = self._sensor_index(sensors)
+        c = self._channel_index(channel)
+        return self.decode(z, mu).flatten(2)[:, c, idx]
+
+    def _sensor_index(self, sensors: ArrayLike) -> torch.Tensor:
+        idx = torch.as_tensor(np.asarray(sensors), dtype=torch.long, device=self.stats_mean.device)
+        n_cells = int(np.prod(self.grid))
+        if idx.ndim != 1 or idx.numel() == 0 or int(idx.min()) < 0 or int(idx.max()) >= n_cells:
+            raise ValueError(
+                f"sensors must be a non-empty 1D array of flat C-order grid indices in [0, {n_cells}), "
+                f"got {np.asarray(sensors)!r}"
+            )
+        return idx
+
+    def _channel_index(self, channel: int | str) -> int:
+        if isinstance(channel, str):
+            if channel not in self.shape.channels:
+                raise ValueError(f"unknown channel {channel!r}; {self.benchmark} has {', '.join(self.shape.channels)}")
+            return self.shape.channels.index(channel)
+        if not 0 <= int(channel) < self.n_fields:
+            raise ValueError(f"channel must be in [0, {self.n_fields}), got {channel}")
+        return int(channel)
+
+    def extra_repr(self) -> str:
+        return f"benchmark={self.benchmark!r}, kind={self.kind!r}, r={self.r}, dt={self.dt}"
+
+
+class NeuralLatentModel(LatentModel):
+    """Encoder E_phi + embedding e_omega, decoder G_psi and a learned latent map (Koopman, MLP or xLSTM).
+
+    Parameter counts (``param_counts``) follow the paper's table: the encoder includes the embedding,
+    the decoder has no parameter of its own for the conditioning (it receives z + s), and the latent map
+    excludes the embedding.
+    """
+
+    def __init__(
+        self,
+        shape: BenchmarkShape,
+        kind: str,
+        r: int = 32,
+        preset: str = "paper",
+        *,
+        dt: float | None = None,
+        stats_mean: ArrayLike | None = None,
+        stats_std: ArrayLike | None = None,
+        cell_type: ArrayLike | None = None,
+    ) -> None:
+        super().__init__(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std)
+        if kind not in ("koopman", "mlp", "xlstm"):
+            raise ValueError(f"NeuralLatentModel kind must be 'koopman', 'mlp' or 'xlstm', got {kind!r}")
+        self.kind = kind
+        self.preset = preset
+        spec = backbone_spec(shape.name, preset)
+        embedding = ParameterEmbedding(self.r, shape.param_range, EMBEDDING_HIDDEN_LAYERS)
+        self.encoder = ParametricEncoder(ConvEncoder(shape, spec, self.r), embedding)
+        self.decoder = ConvDecoder(shape, spec, self.r)
+        if kind == "koopman":
+            self.latent_map: nn.Module = KoopmanOperator(self.r, self.dt, KOOPMAN_HIDDEN_LAYERS)
+        elif kind == "mlp":
+            self.latent_map = MLPTransition(self.r, MLP_HIDDEN_WIDTH, MLP_HIDDEN_LAYERS)
+        else:
+            self.latent_map = XLSTMTransition(
+                self.r, XLSTM_EMBEDDING_DIM, XLSTM_NUM_HEADS, XLSTM_CONV_KERNEL, XLSTM_QKV_BLOCKSIZE
+            )
+        if shape.has_cell_type:
+            ct = None if cell_type is None else self._cell_type_tensor(cell_type)
+            self.register_buffer("cell_type", ct)
+        else:
+            if cell_type is not None:
+                raise ValueError(f"{shape.name} has no cell type; do not pass cell_type")
+            self.cell_type = None
+        self._operator_cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+
+    def _cell_type_tensor(self, cell_type: ArrayLike) -> torch.Tensor:
+        ct = torch.as_tensor(np.asarray(cell_type), dtype=torch.float32)
+        if tuple(ct.shape) != self.grid:
+            raise ValueError(f"cell_type must have the grid shape {self.grid}, got {tuple(ct.shape)}")
+        return ct.to(torch.get_default_device())
+
+    @property
+    def _dtype(self) -> torch.dtype:
+        return self.stats_mean.dtype  # the model's floating dtype; inputs of other dtypes are cast to it
+
+    def param_counts(self) -> dict[str, int]:
+        """Parameters of the encoder (incl. e(mu)), decoder and latent map, as in the paper's table."""
+        return {
+            "encoder": count_parameters(self.encoder),
+            "decoder": count_parameters(self.decoder),
+            "latent_map": count_parameters(self.latent_map),
+        }
+
+    # Embedding and normalization ------------------------------------------------------------------
+    def embed_param(self, mu: ArrayLike) -> torch.Tensor:
+        """s = e_omega(mu), (B,) -> (B, r) (Eq. 6)."""
+        mu = torch.as_tensor(mu, device=self.stats_mean.device)
+        if mu.ndim != 1:
+            raise ValueError(f"mu must have shape (B,), got {tuple(mu.shape)}")
+        return self.encoder.embedding(mu)
+
+    def encoder_input(self, x: ArrayLike) -> torch.Tensor:
+        """Normalized fields with the cell type appended as the last channel (B, C_in, *grid)."""
+        x = self.normalize(self._fields(x))
+        return self._with_cell_type(x) if self.shape.has_cell_type else x
+
+    def reconstruction_target(self, x: ArrayLike) -> torch.Tensor:
+        """What ``decode_normalized`` should reproduce: normalized fields, plus the cell type on the sphere."""
+        x = self.normalize(self._fields(x))
+        return self._with_cell_type(x) if self.shape.reconstructs_cell_type else x
+
+    def _with_cell_type(self, x: torch.Tensor) -> torch.Tensor:
+        if self.cell_type is None:
+            raise RuntimeError(
+                f"the {self.benchmark} model needs the cell type as a channel; build it with "
+                "cell_type=ds.cell_type (or dataset=ds)"
+            )
+        ct = self.cell_type.to(x.dtype).expand(x.shape[0], 1, *self.grid)
+        return torch.cat([x, ct], dim=1)
+
+    # Interface ------------------------------------------------------------------------------------
+    def encode(self, x: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """z = E_phi(x, mu) + e_omega(mu) from physical fields (B, C, *grid)."""
+        xin = self.encoder_input(x)
+        z = self.encoder(xin.to(self._dtype), self._param(mu, xin.shape[0]))
+        return z.to(xin.dtype)
+
+    def decode_normalized(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """G_psi(z + s): all decoder output channels (B, C_out, *grid), normalized units."""
+        z = self._latent(z)
+        out = self.decoder(z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0])))
+        return out.to(z.dtype)
+
+    def decode(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """Physical fields (B, C, *grid); the sphere's cell-type output channel is dropped."""
+        return self.denormalize(self.decode_normalized(z, mu)[:, : self.n_fields])
+
+    def forecast(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        z = self._latent(z)
+        mu = self._param(mu, z.shape[0])
+        if self.kind == "koopman":
+            return (self.koopman_operator(mu).to(z.dtype) @ z[..., None])[..., 0]  # Eq. 7
+        return self.latent_map(z.to(self._dtype), self.embed_param(mu)).to(z.dtype)
+
+    def forecast_jacobian(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """Koopman: K(mu; dt) (state independent); MLP/xLSTM: autodiff Jacobian at z (torch.func)."""
+        z = self._latent(z)
+        mu = self._param(mu, z.shape[0])
+        if self.kind == "koopman":
+            return self.koopman_operator(mu).to(z.dtype)
+        s = self.embed_param(mu)
+
+        def one_step(z1: torch.Tensor, s1: torch.Tensor) -> torch.Tensor:
+            return self.latent_map(z1[None], s1[None])[0]
+
+        return torch.func.vmap(torch.func.jacrev(one_step))(z.to(self._dtype), s).to(z.dtype)
+
+    # Koopman operator -----------------------------------------------------------------------------
+    def koopman_operator(self, mu: ArrayLike) -> torch.Tensor:
+        """K(mu; dt) (B, r, r) (Eq. 7); cached per mu when no gradient is being recorded."""
+        if self.kind != "koopman":
+            raise TypeError(f"koopman_operator is defined for the Koopman model only, this model is {self.kind!r}")
+        mu = torch.as_tensor(mu, device=self.stats_mean.device)
+        mu = self._param(mu, mu.shape[0] if mu.ndim else 1)
+        if torch.is_grad_enabled() and any(p.requires_grad for p in self._operator_parameters()):
+            return self._compute_operator(mu)
+        # In-place updates (optimizer steps, load_state_dict) bump the parameter versions.
+        versions = tuple(p._version for p in self._operator_parameters())
+        key = (str(mu.device), str(mu.dtype), mu.detach().cpu().numpy().tobytes(), versions)
+        if key in self._operator_cache:
+            self._operator_cache.move_to_end(key)
+            return self._operator_cache[key]
+        with torch.no_grad():
+            k = self._compute_operator(mu)
+        self._operator_cache[key] = k
+        while len(self._operator_cache) > 16:
+            self._operator_cache.popitem(last=False)
+        return k
+
+    def _operator_parameters(self) -> list[nn.Parameter]:
+        return [*self.encoder.embedding.parameters(), *self.latent_map.parameters()]
+
+    def _compute_operator(self, mu: torch.Tensor) -> torch.Tensor:
+        values, inverse = torch.unique(mu, return_inverse=True)
+        return self.latent_map.operator(self.encoder.embedding(values))[inverse]
+
+    def _apply(self, fn: Any, *args: Any, **kwargs: Any) -> "NeuralLatentModel":
+        self._operator_cache.clear()  # device or dtype moves invalidate cached operators
+        return super()._apply(fn, *args, **kwargs)
+
+
+def build_model(
+    benchmark: Any,
+    model: str,
+    r: int = 32,
+    preset: str = "paper",
+    *,
+    dataset: Any = None,
+    dt: float | None = None,
+    stats_mean: ArrayLike | None = None,
+    stats_std: ArrayLike | None = None,
+    cell_type: ArrayLike | None = None,
+    seed: int | None = 0,
+) -> LatentModel:
+    """Build a latent model of ``benchmark`` (name or Benchmark): "koopman", "mlp", "xlstm" or "pdmd".
+
+    ``preset`` is "paper" (the paper's architectures, exact parameter counts at r = 32) or "lite"
+    (narrower, CPU-trainable). Pass ``dataset=ds`` to take the latent step, the train-split channel
+    statistics and the cell type from a :class:`dks_gym.dataset.Dataset`; otherwise the benchmark's
+    paper dt and an identity normalization are used (fine for counting parameters and for tests).
+    Weights are initialized from ``seed`` without touching the global RNG. A pDMD model is returned
+    unfitted: call ``.fit(...)`` or ``.fit_dataset(ds)``.
+    """
+    shape = benchmark_shape(benchmark)
+    if model not in MODEL_KINDS:
+        raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODEL_KINDS)}")
+    if preset not in MODEL_PRESETS:
+        raise ValueError(f"unknown model preset {preset!r}; choose one of {', '.join(MODEL_PRESETS)}")
+    if dataset is not None:
+        ds_name = getattr(dataset.benchmark, "name", dataset.benchmark)
+        if str(ds_name).lower() != shape.name:
+            raise ValueError(f"dataset is for benchmark {ds_name!r}, not {shape.name!r}")
+        dt = dataset.dt if dt is None else dt
+        stats_mean = dataset.stats_mean if stats_mean is None else stats_mean
+        stats_std = dataset.stats_std if stats_std is None else stats_std
+        cell_type = dataset.cell_type if cell_type is None else cell_type
+    if model == "pdmd":
+        from .pdmd import PDMD
+
+        return PDMD(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std)
+    devices: Sequence[Any] = []
+    with torch.random.fork_rng(devices=devices):
+        if seed is not None:
+            torch.manual_seed(seed)
+        return NeuralLatentModel(
+            shape, model, r, preset, dt=dt, stats_mean=stats_mean, stats_std=stats_std, cell_type=cell_type
+        )

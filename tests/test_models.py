@@ -1,0 +1,285 @@
+"""Neural latent models: paper parameter counts, Koopman structure, Jacobians, xLSTM one-step guard, I/O."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+
+from dks_gym.models import (
+    BENCHMARK_SHAPES,
+    PAPER_LATENT_PARAM_COUNTS,
+    PAPER_PARAM_COUNTS,
+    ParameterEmbedding,
+    build_model,
+    count_parameters,
+)
+
+BENCHMARKS = tuple(BENCHMARK_SHAPES)
+
+
+def _mu_grid(benchmark: str, n: int) -> torch.Tensor:
+    low, high = BENCHMARK_SHAPES[benchmark].param_range
+    return torch.linspace(low, high, n, dtype=torch.float64)
+
+
+def _lite(benchmark: str, kind: str, r: int = 8, seed: int = 0, **kwargs) -> torch.nn.Module:
+    shape = BENCHMARK_SHAPES[benchmark]
+    if shape.has_cell_type and "cell_type" not in kwargs:
+        kwargs["cell_type"] = np.random.default_rng(seed).integers(0, 5, size=shape.grid).astype(np.int8)
+    return build_model(benchmark, kind, r=r, preset="lite", seed=seed, **kwargs)
+
+
+# Parameter counts (paper table tab:ld32_param_counts) -----------------------------------------------
+def test_embedding_has_paper_parameter_count():
+    # Linear(1, 32) + 4 Linear(32, 32) = 64 + 4 * 1056
+    assert count_parameters(ParameterEmbedding(32, (0.0, 1.0))) == 4_288
+
+
+@pytest.mark.parametrize("benchmark", BENCHMARKS)
+def test_paper_preset_parameter_counts_match_paper_table(benchmark):
+    encoder, decoder = PAPER_PARAM_COUNTS[benchmark]
+    # Literal copy of the paper's table, independent of the presets module.
+    assert (encoder, decoder) == {
+        "burgers": (2_243_504, 2_243_249),
+        "cylinder": (21_031_264, 21_056_003),
+        "dambreak": (21_037_664, 21_062_405),
+        "sphere": (38_247_008, 38_274_949),
+    }[benchmark]
+    for kind, latent in (("koopman", 43_296), ("mlp", 43_607)):
+        assert PAPER_LATENT_PARAM_COUNTS[kind] == latent
+        with torch.device("meta"):  # no memory for the 38M-parameter sphere backbone
+            model = build_model(benchmark, kind, r=32, preset="paper")
+        counts = model.param_counts()
+        assert counts == {"encoder": encoder, "decoder": decoder, "latent_map": latent}
+        assert count_parameters(model) == encoder + decoder + latent  # nothing outside the three parts
+
+
+def test_backbone_channels_follow_the_paper_tables():
+    # (encoder input, decoder output) channels: Burgers 1/1, cylinder 4/3, dambreak 6/5, sphere 5/5.
+    expected = {"burgers": (1, 1), "cylinder": (4, 3), "dambreak": (6, 5), "sphere": (5, 5)}
+    for name, (c_in, c_out) in expected.items():
+        shape = BENCHMARK_SHAPES[name]
+        assert (shape.in_channels, shape.out_channels) == (c_in, c_out)
+
+
+def test_xlstm_parameter_count_is_what_the_installed_package_yields():
+    from xlstm import mLSTMBlockConfig, mLSTMLayerConfig, xLSTMBlockStack, xLSTMBlockStackConfig
+
+    stack = xLSTMBlockStack(
+        xLSTMBlockStackConfig(
+            mlstm_block=mLSTMBlockConfig(
+                mlstm=mLSTMLayerConfig(conv1d_kernel_size=4, qkv_proj_blocksize=4, num_heads=4)
+            ),
+            slstm_at=[],
+            context_length=1,
+            num_blocks=1,
+            embedding_dim=32,
+        )
+    )
+    r = 32
+    expected = count_parameters(stack) + (2 * r * 32 + 32) + (32 * r + r)  # + W_in, b_in, W_out, b_out
+    with torch.device("meta"):
+        model = build_model("burgers", "xlstm", r=r)
+    assert model.param_counts()["latent_map"] == expected
+    assert model.param_counts()["encoder"] == PAPER_PARAM_COUNTS["burgers"][0]
+
+
+# Koopman operator (Eqs. 7-9) ---------------------------------------------------------------------------
+@pytest.mark.parametrize("benchmark", ["burgers", "cylinder"])  # dt = 0.005 (near-isometric) and 0.5
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_koopman_operator_is_non_expansive_for_random_weights(benchmark, seed):
+    torch.manual_seed(seed)
+    model = build_model(benchmark, "koopman", r=16, preset="lite", seed=seed)
+    with torch.no_grad():
+        for p in model.latent_map.parameters():  # far from the default initialization
+            p.mul_(1 + 4 * torch.rand(()))
+            p.add_(torch.randn_like(p))
+    low, high = BENCHMARK_SHAPES[benchmark].param_range
+    mu = torch.cat([_mu_grid(benchmark, 200), torch.tensor([low - 10 * high, 0.0, 10 * high], dtype=torch.float64)])
+    with torch.no_grad():
+        k = model.koopman_operator(mu)
+    norms = torch.linalg.matrix_norm(k.double(), ord=2)
+    assert norms.max() <= 1 + 1e-6
+    assert norms.min() < 1  # the dissipative term acts
+
+
+def test_koopman_operator_equals_expm_of_skew_minus_diagonal_generator():
+    model = _lite("burgers", "koopman", r=12)
+    mu = _mu_grid("burgers", 7)
+    with torch.no_grad():
+        k = model.koopman_operator(mu).double().numpy()
+        s = model.embed_param(mu)
+        q = model.latent_map.q_net(s).double().numpy().reshape(-1, 12, 12)
+        d = model.latent_map.d_net(s).double().numpy()
+    for i in range(len(mu)):
+        a = q[i] - q[i].T - np.diag(d[i] ** 2)
+        np.testing.assert_allclose(k[i], scipy.linalg.expm(a * 0.005), atol=2e-7)
+    assert model.dt == 0.005  # the Burgers latent step of the paper's table
+
+
+def test_koopman_cache_follows_parameter_updates():
+    model = _lite("burgers", "koopman", r=8)
+    mu = _mu_grid("burgers", 4)
+    with torch.no_grad():
+        k1 = model.koopman_operator(mu)
+        assert model.koopman_operator(mu) is k1  # cached
+    opt = torch.optim.SGD(model.latent_map.parameters(), lr=0.1)
+    model.koopman_operator(mu).sum().backward()  # grad enabled: computed afresh, differentiable
+    opt.step()
+    with torch.no_grad():
+        k2 = model.koopman_operator(mu)
+        fresh = model.latent_map.operator(model.embed_param(mu))
+    assert not torch.allclose(k1, k2)
+    torch.testing.assert_close(k2, fresh)
+
+
+# Jacobians ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["koopman", "mlp", "xlstm"])
+def test_forecast_jacobian_equals_autograd_jacobian(kind):
+    model = _lite("burgers", kind, r=8)
+    torch.manual_seed(3)
+    z = torch.randn(5, 8)
+    mu = _mu_grid("burgers", 5)
+    with torch.no_grad():  # filters call it without gradient recording
+        jac = model.forecast_jacobian(z, mu)
+    assert jac.shape == (5, 8, 8)
+    for i in range(5):
+        ref = torch.autograd.functional.jacobian(lambda v: model.forecast(v[None], mu[i : i + 1])[0], z[i])
+        torch.testing.assert_close(jac[i], ref, atol=1e-5, rtol=1e-5)
+    if kind == "koopman":
+        torch.testing.assert_close(jac, model.koopman_operator(mu).detach())
+    else:
+        assert not torch.allclose(jac[0], jac[1])  # state dependent
+
+
+# xLSTM one-step evaluation -------------------------------------------------------------------------------
+def test_xlstm_refuses_sequences():
+    model = _lite("burgers", "xlstm", r=8)
+    z, s = torch.randn(3, 4, 8), torch.randn(3, 4, 8)
+    with pytest.raises(ValueError, match="one step"):
+        model.latent_map(z, s)
+    with pytest.raises(ValueError, match="one step"):
+        model.latent_map.stack(torch.randn(3, 2, 32))  # the stack itself is guarded too
+
+
+def test_xlstm_map_is_one_recurrent_step_from_a_fresh_state():
+    model = _lite("burgers", "xlstm", r=8)
+    z, mu = torch.randn(4, 8), _mu_grid("burgers", 4)
+    u = model.latent_map.proj_in(torch.cat([z, model.embed_param(mu)], dim=-1))[:, None]
+    y_step, _ = model.latent_map.stack.step(u, state=None)  # the package's recurrent form, zero state
+    expected = model.latent_map.proj_out(y_step[:, 0])
+    torch.testing.assert_close(model.forecast(z, mu), expected, atol=1e-5, rtol=1e-5)
+
+
+# Encode / decode ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("benchmark", BENCHMARKS)
+def test_lite_encode_decode_shapes_round_trip(benchmark):
+    shape = BENCHMARK_SHAPES[benchmark]
+    model = _lite(benchmark, "koopman", r=6)
+    x = torch.randn(2, shape.n_fields, *shape.grid)
+    mu = _mu_grid(benchmark, 2)
+    with torch.no_grad():
+        z = model.encode(x, mu)
+        assert z.shape == (2, 6)
+        assert model.decode(z, mu).shape == x.shape
+        assert model.forecast(z, mu).shape == (2, 6)
+        out = model.decode_normalized(z, mu)
+    assert out.shape == (2, shape.out_channels, *shape.grid)
+    assert model.encoder_input(x).shape[1] == shape.in_channels
+
+
+def test_normalization_is_inside_encode_and_decode():
+    mean, std = np.array([0.3, -1.0, 2.0]), np.array([2.0, 0.5, 4.0])
+    ct = np.random.default_rng(0).integers(0, 5, size=(64, 64))
+    scaled = build_model("cylinder", "mlp", r=4, preset="lite", stats_mean=mean, stats_std=std, cell_type=ct)
+    plain = build_model("cylinder", "mlp", r=4, preset="lite", cell_type=ct)  # same seed, identity stats
+    x = torch.randn(2, 3, 64, 64) * 3
+    mu = _mu_grid("cylinder", 2)
+    m_ = torch.tensor(mean, dtype=torch.float32)[:, None, None]
+    s_ = torch.tensor(std, dtype=torch.float32)[:, None, None]
+    with torch.no_grad():
+        torch.testing.assert_close(scaled.encode(x, mu), plain.encode((x - m_) / s_, mu))
+        z = torch.randn(2, 4)
+        torch.testing.assert_close(scaled.decode(z, mu), plain.decode(z, mu) * s_ + m_)
+        last = scaled.decoder.deconv[-1]
+        last.weight.zero_()
+        last.bias.zero_()
+        torch.testing.assert_close(scaled.decode(z, mu), m_.expand(2, 3, 64, 64).contiguous())
+
+
+def test_sphere_decoder_reconstructs_cell_type_but_decode_drops_it():
+    ct = np.random.default_rng(1).integers(0, 5, size=(64, 64, 64))
+    model = _lite("sphere", "mlp", r=4, cell_type=ct)
+    x = torch.randn(1, 4, 64, 64, 64)
+    target = model.reconstruction_target(x)
+    assert target.shape == (1, 5, 64, 64, 64)
+    np.testing.assert_array_equal(target[0, 4].numpy(), ct.astype(np.float32))
+    with torch.no_grad():
+        assert model.decode(torch.zeros(1, 4), 100.0).shape == (1, 4, 64, 64, 64)
+    cyl = _lite("cylinder", "mlp", r=4)
+    assert cyl.reconstruction_target(torch.randn(1, 3, 64, 64)).shape == (1, 3, 64, 64)
+
+
+def test_observe_samples_the_decoded_channel():
+    model = _lite("dambreak", "koopman", r=4)
+    sensors = np.ravel_multi_index((np.array([0, 10, 63]), np.array([5, 20, 63])), (64, 64))
+    z, mu = torch.randn(3, 4), _mu_grid("dambreak", 3)
+    with torch.no_grad():
+        y = model.observe(z, mu, sensors, channel=3)
+        full = model.decode(z, mu)
+        torch.testing.assert_close(model.observe(z, mu, sensors, channel="p"), y)  # channel 3 is p
+    torch.testing.assert_close(y, full[:, 3, [0, 10, 63], [5, 20, 63]])
+
+
+def test_bad_inputs_raise_clear_errors():
+    model = _lite("cylinder", "koopman", r=4)
+    with pytest.raises(ValueError, match=r"shape \(B, 3, 64, 64\)"):
+        model.encode(torch.randn(3, 64, 64), 100.0)
+    with pytest.raises(ValueError, match="mu must be"):
+        model.encode(torch.randn(2, 3, 64, 64), torch.ones(3))
+    with pytest.raises(ValueError, match=r"\(B, 4\)"):
+        model.forecast(torch.randn(2, 5), 100.0)
+    no_ct = build_model("cylinder", "koopman", r=4, preset="lite")
+    with pytest.raises(RuntimeError, match="cell_type"):
+        no_ct.encode(torch.randn(1, 3, 64, 64), 100.0)
+    with pytest.raises(ValueError, match="unknown model"):
+        build_model("cylinder", "lstm")
+    with pytest.raises(ValueError, match="unknown benchmark"):
+        build_model("channel", "koopman")
+
+
+def test_seeded_construction_is_reproducible_and_leaves_global_rng_alone():
+    torch.manual_seed(123)
+    before = torch.rand(1)
+    torch.manual_seed(123)
+    a = build_model("burgers", "mlp", r=4, preset="lite", seed=7)
+    after = torch.rand(1)
+    b = build_model("burgers", "mlp", r=4, preset="lite", seed=7)
+    assert torch.equal(before, after)
+    for pa, pb in zip(a.parameters(), b.parameters()):
+        assert torch.equal(pa, pb)
+
+
+def test_rollout_repeats_forecast():
+    model = _lite("burgers", "mlp", r=4)
+    z0, mu = torch.randn(2, 4), _mu_grid("burgers", 2)
+    with torch.no_grad():
+        traj = model.rollout(z0, mu, 3)
+        z = z0
+        for k in range(3):
+            z = model.forecast(z, mu)
+        torch.testing.assert_close(traj[:, 3], z)
+    assert traj.shape == (2, 4, 4)
+
+
+@pytest.mark.parametrize("kind", ["koopman", "mlp", "xlstm"])
+def test_float64_inputs_run_through_a_float32_model(kind):
+    model = _lite("burgers", kind, r=4)
+    z, mu = torch.randn(2, 4, dtype=torch.float64), _mu_grid("burgers", 2)
+    with torch.no_grad():
+        out = (model.forecast(z, mu), model.forecast_jacobian(z, mu), model.decode(z, mu))
+        torch.testing.assert_close(out[0], model.forecast(z.float(), mu).double())
+    assert all(t.dtype == torch.float64 for t in out)
+    assert model.encode(torch.randn(2, 1, 1024, dtype=torch.float64), mu).dtype == torch.float64
