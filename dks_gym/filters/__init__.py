@@ -1,0 +1,38 @@
+"""Latent-space data-assimilation filters (paper Section II.E and Section IV.D, SPEC section 4).
+
+Model-independent and batched: a model enters only as a :class:`LatentDynamics` of callables over
+``(B, r)`` latent tensors. Step functions (:func:`ekf_forecast`, :func:`ekf_update`,
+:func:`enkf_forecast`, :func:`enkf_update`) and stateful classes (:class:`EKF`, :class:`EnKF`) with
+``reset(z0, P0)`` / ``step(y, assimilate=True)`` / ``mean`` / ``cov`` / ``diagnostics``.
+"""
+
+from .common import (
+    Diagnostics,
+    FilterDivergence,
+    GaussianState,
+    LatentDynamics,
+    as_covariance,
+    bind_param,
+    value_and_jacobian,
+)
+from .ekf import EKF, ekf_forecast, ekf_update
+from .enkf import EnKF, enkf_forecast, enkf_update, ensemble_state, initial_ensemble, schur_localization
+
+__all__ = [
+    "EKF",
+    "Diagnostics",
+    "EnKF",
+    "FilterDivergence",
+    "GaussianState",
+    "LatentDynamics",
+    "as_covariance",
+    "bind_param",
+    "ekf_forecast",
+    "ekf_update",
+    "enkf_forecast",
+    "enkf_update",
+    "ensemble_state",
+    "initial_ensemble",
+    "schur_localization",
+    "value_and_jacobian",
+]

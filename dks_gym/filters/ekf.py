@@ -1,0 +1,184 @@
+"""Extended Kalman filter in the latent space (paper Eqs. 13-17, SPEC section 4).
+
+One step is a forecast from the analysis state followed, when a measurement arrives, by an update:
+
+- forecast (Eqs. 13-14): ``z_f = f(z_a)``, ``P_f = F P_a F^T + Q`` with ``F = df/dz`` at ``z_a``;
+- gain (Eq. 15): ``K = P_f J^T (J P_f J^T + R)^{-1}`` with ``J = dh/dz`` at ``z_f``, solved through the
+  Cholesky factor of the innovation covariance (never an explicit inverse);
+- mean (Eq. 16): ``z_a = z_f + K (y - h(z_f))``;
+- covariance (Eq. 17) in Joseph form ``(I - K J) P_f (I - K J)^T + K R K^T``, then symmetrized. It equals
+  ``(I - K J) P_f`` in exact arithmetic and stays symmetric positive definite in floating point
+  (the form filterpy's ``KalmanFilter``/``ExtendedKalmanFilter`` use).
+
+A forward run (no assimilation) is the same loop with the update switched off, ``step(assimilate=False)``:
+its mean is exactly the model rollout ``z_{k+1} = f(z_k)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .common import (
+    CovarianceSpec,
+    DivergencePolicy,
+    GaussianState,
+    JacobianMethod,
+    LatentDynamics,
+    SequentialFilter,
+    StepTimer,
+    as_covariance,
+    check_measurement,
+    cholesky_or_nan,
+    forecast_with_jacobian,
+    nonfinite_elements,
+    observe_with_jacobian,
+    raise_if_diverged,
+    spectral_norm,
+    symmetrize,
+)
+
+
+def ekf_forecast(
+    state: GaussianState,
+    dynamics: LatentDynamics,
+    Q: CovarianceSpec = 1e-4,
+    *,
+    jacobian_method: JacobianMethod = "auto",
+    check: bool = True,
+) -> tuple[GaussianState, Tensor]:
+    """EKF forecast (Eqs. 13-14) from an analysis state; returns the forecast state and ``F`` ``(B, r, r)``.
+
+    With ``check=False`` non-finite results are returned for the caller to handle instead of raising
+    :class:`~dks_gym.filters.FilterDivergence`.
+    """
+    z_a, P_a = state.mean, state.cov
+    batch, r = z_a.shape
+    z_f, F = forecast_with_jacobian(dynamics, z_a, jacobian_method)  # Eq. 13, F at the analysis state
+    P_f = symmetrize(F @ P_a @ F.mT + as_covariance(Q, batch, r, like=z_a, name="Q"))  # Eq. 14
+    if check:
+        raise_if_diverged(nonfinite_elements(z_f, P_f), "EKF forecast")
+    return GaussianState(z_f, P_f), F
+
+
+def ekf_update(
+    state: GaussianState,
+    y: Tensor,
+    dynamics: LatentDynamics,
+    R: CovarianceSpec,
+    *,
+    jacobian_method: JacobianMethod = "auto",
+    check: bool = True,
+) -> tuple[GaussianState, Tensor]:
+    """EKF update (Eqs. 15-17, Joseph form) of a forecast state with measurements ``y`` ``(B, m)``.
+
+    Returns the analysis state and the gain ``K`` ``(B, r, m)``. ``R`` is the measurement-noise covariance
+    (scalar, ``(B,)``, ``(m, m)`` or ``(B, m, m)``). Raises ValueError for a malformed or non-finite ``y``.
+    """
+    z_f, P_f = state.mean, state.cov
+    batch = z_f.shape[0]
+    h, J = observe_with_jacobian(dynamics, z_f, jacobian_method)
+    m = h.shape[1]
+    y = check_measurement(y, batch, m, like=z_f)
+    R_mat = as_covariance(R, batch, m, like=z_f, name="R")
+
+    PJt = P_f @ J.mT
+    L, singular = cholesky_or_nan(symmetrize(J @ PJt + R_mat))
+    K = torch.cholesky_solve(PJt.mT, L).mT  # Eq. 15: K^T = S^{-1} J P_f since P_f is symmetric
+    z_a = z_f + (K @ (y - h)[..., None])[..., 0]  # Eq. 16
+    I_KJ = -(K @ J)
+    I_KJ.diagonal(dim1=-2, dim2=-1).add_(1.0)
+    P_a = symmetrize(I_KJ @ P_f @ I_KJ.mT + K @ R_mat @ K.mT)  # Eq. 17, Joseph form
+    if check:
+        raise_if_diverged(nonfinite_elements(z_a, P_a) | singular, "EKF update")
+    return GaussianState(z_a, P_a), K
+
+
+class EKF(SequentialFilter):
+    """Stateful batched EKF: ``reset(z0, P0)``, then ``step(y)`` per measurement (``assimilate=False``: forecast only).
+
+    Parameters: ``dynamics`` (a :class:`LatentDynamics`); exactly one of ``R`` (measurement-noise
+    covariance) or ``sigma`` (its standard deviation, scalar or ``(B,)``: ``R = sigma^2 I``); ``Q``
+    process-noise covariance (default ``1e-4 I``); ``on_divergence``: ``"raise"`` (default) raises
+    :class:`FilterDivergence` when an element's mean or covariance becomes non-finite, ``"reset"``
+    restarts those elements from ``(z0, P0)`` and flags them in :attr:`diagnostics`;
+    ``jacobian_method``: see :func:`~dks_gym.filters.common.value_and_jacobian`.
+    """
+
+    def __init__(
+        self,
+        dynamics: LatentDynamics,
+        *,
+        R: CovarianceSpec | None = None,
+        sigma: float | Tensor | None = None,
+        Q: CovarianceSpec = 1e-4,
+        on_divergence: DivergencePolicy = "raise",
+        jacobian_method: JacobianMethod = "auto",
+        record_diagnostics: bool = True,
+    ) -> None:
+        super().__init__(
+            dynamics, R=R, sigma=sigma, Q=Q, on_divergence=on_divergence, record_diagnostics=record_diagnostics
+        )
+        if jacobian_method not in ("auto", "vmap", "loop"):
+            raise ValueError(f"jacobian_method must be 'auto', 'vmap' or 'loop', got {jacobian_method!r}")
+        self.jacobian_method = jacobian_method
+        self.state: GaussianState | None = None
+
+    def reset(self, z0: Tensor, P0: CovarianceSpec | None = None) -> None:
+        """Start from mean ``z0`` ``(B, r)`` and covariance ``P0``.
+
+        ``P0``: default ``I``; a scalar, ``(B,)``, ``(r, r)`` or ``(B, r, r)``; must be symmetric positive definite.
+        """
+        self._start(z0)
+        z0 = torch.as_tensor(z0).detach().clone()
+        self._initial = GaussianState(z0, self._initial_covariance(P0, z0))
+        self.state = GaussianState(z0.clone(), self._initial.cov.clone())
+
+    @property
+    def mean(self) -> Tensor:
+        """Current latent mean ``(B, r)``: the analysis after an assimilating step, the forecast otherwise."""
+        self._require_reset()
+        return self.state.mean
+
+    @property
+    def cov(self) -> Tensor:
+        """Current covariance ``(B, r, r)``."""
+        self._require_reset()
+        return self.state.cov
+
+    def step(self, y: Tensor | None = None, assimilate: bool = True) -> Tensor:
+        """Forecast one step and, if ``assimilate``, update with ``y`` ``(B, m)``; return the new mean ``(B, r)``."""
+        self._require_reset()
+        state = self.state
+        with StepTimer(state.mean.device) as timer:
+            y_checked = self._measurement(y, state.mean) if assimilate else None
+            new, F = ekf_forecast(
+                state, self.dynamics, self._process_noise(state.mean), jacobian_method=self.jacobian_method, check=False
+            )
+            gain_norm = torch.zeros(self._batch, dtype=state.mean.dtype, device=state.mean.device)
+            if assimilate:
+                R = self._measurement_noise(state.mean, y_checked.shape[1])
+                new, K = ekf_update(new, y_checked, self.dynamics, R, jacobian_method=self.jacobian_method, check=False)
+                self._m = y_checked.shape[1]
+                if self.record_diagnostics:
+                    gain_norm = spectral_norm(torch.nan_to_num(K, nan=0.0, posinf=0.0, neginf=0.0))
+            # A non-finite forecast propagates into the update, so one check after the step covers both.
+            restart = nonfinite_elements(new.mean, new.cov)
+            if bool(restart.any()):
+                self._resolve_divergence(restart, "update" if assimilate else "forecast")
+                new = GaussianState(
+                    torch.where(restart[:, None], self._initial.mean, new.mean),
+                    torch.where(restart[:, None, None], self._initial.cov, new.cov),
+                )
+            self.state = new
+            self.n_steps += 1
+        if self.record_diagnostics:
+            self._record(
+                timer,
+                forecast_norm=spectral_norm(torch.nan_to_num(F, nan=0.0, posinf=0.0, neginf=0.0)),
+                gain_norm=gain_norm,
+                spread=(new.cov.diagonal(dim1=-2, dim2=-1).mean(-1)).sqrt(),
+                reset=restart,
+                assimilated=assimilate,
+            )
+        return new.mean
