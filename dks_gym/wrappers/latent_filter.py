@@ -97,20 +97,26 @@ def model_dynamics(model: Any, mu: torch.Tensor, sensors: SensorRef, channel: st
                           observe_jacobian=observe_jacobian)
 
 
-def resolve_model(model: Any, benchmark: str, *, r: int, preset: str, T: int, device: str,
+def resolve_model(model: Any, benchmark: str, *, r: int | None, preset: str, T: int, device: str,
                   train_if_missing: bool) -> Any:
-    """A model object, or load the cached checkpoint named by ``model`` ("koopman", "pdmd", "mlp", "xlstm")."""
+    """A model object, or load the cached checkpoint named by ``model`` ("koopman", "pdmd", "mlp", "xlstm").
+
+    ``r`` (default 32 for names) must match a given model object's latent dimension when it is passed.
+    """
     if isinstance(model, str):
         if model not in MODEL_KINDS:
             raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODEL_KINDS)} or pass a model object")
         from ..models import load_model
 
-        model = load_model(benchmark, model, r=r, preset=preset, T=T, device=device, train_if_missing=train_if_missing)
+        model = load_model(benchmark, model, r=32 if r is None else r, preset=preset, T=T, device=device,
+                           train_if_missing=train_if_missing)
     for attr in ("encode", "decode", "forecast", "forecast_jacobian", "observe", "benchmark", "r", "kind"):
         if not hasattr(model, attr):
             raise TypeError(f"model must provide {attr!r} (see dks_gym.models.LatentModel), got {type(model).__name__}")
     if model.benchmark != benchmark:
         raise ValueError(f"the model was trained for {model.benchmark!r}, but the environment is {benchmark!r}")
+    if r is not None and model.r != r:
+        raise ValueError(f"the model has latent dimension r={model.r}, but r={r} was asked for")
     return model
 
 
@@ -141,7 +147,7 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         model: Any = "koopman",
         filter: str = "ekf",
         *,
-        r: int = 32,
+        r: int | None = None,
         model_preset: str = "lite",
         T: int = 1,
         initial: str = "approximate",

@@ -48,7 +48,7 @@ class LatentFilterVectorEnv(VectorEnv):
         *,
         model: Any = "koopman",
         filter: str = "ekf",
-        r: int = 32,
+        r: int | None = None,
         model_preset: str = "lite",
         T: int = 1,
         initial: str = "approximate",
