@@ -1,5 +1,26 @@
-"""Wrappers that put a latent model and a filter around a SensingEnv and reward reconstruction error."""
+"""Wrappers that put a latent model and a filter around sensing environments and reward reconstruction error."""
 
-from .latent_filter import FILTERS, LatentFilter, approximate_initial_latent, model_dynamics
+from .assimilator import (
+    FILTERS,
+    FilterConfig,
+    LatentAssimilator,
+    approximate_initial_latent,
+    field_errors,
+    model_dynamics,
+    resolve_model,
+)
+from .latent_filter import LatentFilter
+from .vector import LatentFilterVectorEnv, SB3VecEnv
 
-__all__ = ["FILTERS", "LatentFilter", "approximate_initial_latent", "model_dynamics"]
+__all__ = [
+    "FILTERS",
+    "FilterConfig",
+    "LatentAssimilator",
+    "LatentFilter",
+    "LatentFilterVectorEnv",
+    "SB3VecEnv",
+    "approximate_initial_latent",
+    "field_errors",
+    "model_dynamics",
+    "resolve_model",
+]

@@ -22,22 +22,15 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from ..envs.sensing import SensingEnv
-from .latent_filter import (
-    FILTERS,
-    INITIAL_CONDITIONS,
-    REWARDS,
-    EKF,
-    SensorRef,
-    approximate_initial_latent,
-    field_errors,
-    make_filter,
-    model_dynamics,
-    resolve_model,
-)
+from .assimilator import REWARDS, FilterConfig, LatentAssimilator, resolve_model
 
 
 class LatentFilterVectorEnv(VectorEnv):
-    """``num_envs`` SensingEnvs of one benchmark assimilated by one batched EKF/EnKF (or forward run)."""
+    """``num_envs`` SensingEnvs of one benchmark assimilated by one batched EKF/EnKF (or forward run).
+
+    Filter arguments are those of :class:`~dks_gym.wrappers.LatentFilter`; every other keyword goes to
+    each :class:`~dks_gym.envs.SensingEnv` (``preset``, ``sensor_mode``, ``noise_level`` ...).
+    """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
 
@@ -66,37 +59,29 @@ class LatentFilterVectorEnv(VectorEnv):
     ) -> None:
         if not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        if filter not in FILTERS:
-            raise ValueError(f"unknown filter {filter!r}; choose one of {', '.join(FILTERS)}")
-        if initial not in INITIAL_CONDITIONS:
-            raise ValueError(f"unknown initial condition {initial!r}; choose 'approximate' or 'exact'")
         if reward not in REWARDS:
             raise ValueError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
+        config = FilterConfig(filter=filter, initial=initial, P0=P0, Q=Q, n_members=n_members,
+                              inflation=inflation, on_divergence=on_divergence)
         self.envs = [SensingEnv(benchmark, **env_kwargs) for _ in range(num_envs)]
-        first = self.envs[0]
-        self.benchmark = first.benchmark
+        self.benchmark = self.envs[0].benchmark
         self.model = resolve_model(model, self.benchmark.name, r=r, preset=model_preset, T=T, device=device,
                                    train_if_missing=train_if_missing)
+        self.assimilator = LatentAssimilator(self.model, config, device=device, dtype=dtype)
         self.num_envs = num_envs
-        self.filter_kind, self.initial, self.reward_kind = filter, initial, reward
-        self.P0, self.Q, self.n_members, self.inflation = P0, Q, n_members, inflation
-        self.seed_, self.on_divergence = seed, on_divergence
-        self.device, self.dtype = torch.device(device), dtype
+        self.reward_kind = reward
+        self.seed_ = seed
         big = np.finfo(np.float32).max
         self.single_observation_space = spaces.Box(-big, big, shape=(2 * self.model.r,), dtype=np.float32)
-        self.single_action_space = first.action_space
+        self.single_action_space = self.envs[0].action_space
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
-        self._sensors = SensorRef(np.stack([e.sensors for e in self.envs]))
-        self._std = torch.as_tensor(first.dataset.stats_std, dtype=dtype, device=self.device)
-        self.filter = None
         self.render_mode = None
 
-    def _mu(self) -> torch.Tensor:
-        return torch.tensor([e.mu for e in self.envs], dtype=self.dtype, device=self.device)
-
-    def _truth(self) -> torch.Tensor:
-        return torch.as_tensor(np.stack([e.true_state for e in self.envs]), dtype=self.dtype, device=self.device)
+    @property
+    def filter(self):
+        """The running batched filter."""
+        return self.assimilator.filter
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
         if seed is None or isinstance(seed, int):
@@ -106,68 +91,40 @@ class LatentFilterVectorEnv(VectorEnv):
                 raise ValueError(f"got {len(seed)} seeds for {self.num_envs} environments")
             seeds = list(seed)
         results = [e.reset(seed=s, options=options) for e, s in zip(self.envs, seeds)]
-        self._start_filter(filter_seed=self.seed_ if seeds[0] is None else seeds[0])
-        infos = self._infos([info for _, info in results])
-        return self._belief(), infos
-
-    def _start_filter(self, filter_seed: int) -> None:
-        mu = self._mu()
-        self._sensors.current = np.stack([e.sensors for e in self.envs])
-        dynamics = model_dynamics(self.model, mu, self._sensors, self.benchmark.observed_channel)
-        sigma = torch.tensor([max(e.sigma, 1e-12) for e in self.envs], dtype=self.dtype, device=self.device)
-        self.filter = make_filter(self.filter_kind, dynamics, sigma=sigma, Q=self.Q, n_members=self.n_members,
-                                  inflation=self.inflation, seed=filter_seed, on_divergence=self.on_divergence)
-        if self.initial == "exact":
-            with torch.no_grad():
-                z0 = self.model.encode(self._truth(), mu)
-        else:
-            z0 = approximate_initial_latent(self.model, self.envs[0].dataset).to(self.device, self.dtype)
-            z0 = z0.expand(self.num_envs, -1).clone()
-        self.filter.reset(z0.to(self.device, self.dtype), self.P0)
+        self.assimilator.start(self.envs, seed=self.seed_ if seeds[0] is None else seeds[0])
+        return self.assimilator.belief(), self._infos([info for _, info in results])
 
     def step(self, actions: Any):
-        if self.filter is None:
+        if self.assimilator.filter is None:
             raise RuntimeError("call reset() before step()")
         actions = list(actions) if self.envs[0].sensor_mode == "select" else [None] * self.num_envs
         results = [e.step(a) for e, a in zip(self.envs, actions)]
-        y = torch.as_tensor(np.stack([r[0] for r in results]), dtype=self.dtype, device=self.device)
-        self._sensors.current = np.stack([r[4]["sensors"] for r in results])
-        self.filter.step(y, assimilate=self.filter_kind != "none")
+        self.assimilator.step(np.stack([r[0] for r in results]), np.stack([r[4]["sensors"] for r in results]))
         infos = self._infos([r[4] for r in results])
+        infos.update(self.assimilator.step_diagnostics())
         rewards = -(infos["mse"] if self.reward_kind == "mse" else infos["normalized_mse"]).astype(np.float64)
         terminated = np.array([r[2] for r in results])
         truncated = np.array([r[3] for r in results])
-        obs = self._belief()
+        obs = self.assimilator.belief()
         if np.any(terminated | truncated):
             # Episodes of one dataset have equal length, so they all end here; restart the whole batch.
-            infos["final_obs"], infos["final_info"] = obs, {k: v for k, v in infos.items()}
+            infos["final_obs"], infos["final_info"] = obs, dict(infos)
             infos["_final_obs"] = np.ones(self.num_envs, dtype=bool)
             infos["_final_info"] = np.ones(self.num_envs, dtype=bool)
             for e in self.envs:
                 e.reset()
-            self._start_filter(filter_seed=int(self.envs[0].noise_seed % (2**31)))
-            obs = self._belief()
+            self.assimilator.start(self.envs, seed=int(self.envs[0].noise_seed % (2**31)))
+            obs = self.assimilator.belief()
         return obs, rewards, terminated, truncated, infos
 
-    def _belief(self) -> np.ndarray:
-        var = self.filter.cov.diagonal(dim1=-2, dim2=-1).clamp_min(1e-30)
-        return torch.cat([self.filter.mean, var.log()], dim=1).detach().cpu().numpy().astype(np.float32)
-
     def _infos(self, env_infos: list[dict[str, Any]]) -> dict[str, Any]:
-        mu = self._mu()
-        with torch.no_grad():
-            estimate = self.model.decode(self.filter.mean.detach(), mu)
-        truth = self._truth().to(estimate)
-        scored = self.benchmark.scored_indices
         infos: dict[str, Any] = {
             key: np.array([info[key] for info in env_infos])
             for key in ("mu", "time_index", "trajectory", "sigma", "sensors")
         }
-        infos["mse"] = field_errors(estimate, truth, scored).cpu().numpy()
-        infos["normalized_mse"] = field_errors(estimate, truth, scored, self._std).cpu().numpy()
+        estimate = self.assimilator.estimate()
+        infos["mse"], infos["normalized_mse"] = self.assimilator.errors(estimate, self.envs)
         infos["estimate"] = estimate.cpu().numpy().astype(np.float32)
-        if isinstance(self.filter, EKF) and len(self.filter.diagnostics):
-            infos["forecast_norm"] = self.filter.diagnostics.forecast_norm[-1].cpu().numpy()
         return infos
 
     def close_extras(self, **kwargs: Any) -> None:
