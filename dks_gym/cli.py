@@ -58,5 +58,68 @@ def data_info(file: Path) -> None:
         sys.exit(1)
 
 
+@main.command("train")
+@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False))
+@click.option("--model", "model", type=click.Choice(["koopman", "mlp", "xlstm", "pdmd", "all"]), default="all",
+              show_default=True, help="Latent model to train; 'all' trains the four in turn.")
+@click.option("--preset", type=click.Choice(["lite", "paper"]), default="lite", show_default=True,
+              help="Architecture and schedule: the paper's, or narrow and CPU-trainable.")
+@click.option("--r", "r", type=click.IntRange(min=1), default=32, show_default=True, help="Latent dimension.")
+@click.option("--T", "T", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Training horizon (Eq. 11); 1 is the paper's one-step loss.")
+@click.option("--steps", type=click.IntRange(min=1), default=None, help="Total Adam steps (default: the preset's).")
+@click.option("--batch-size", type=click.IntRange(min=1), default=None, help="Batch size (default: the preset's).")
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Adam learning rate (default: the preset's; paper 1e-4).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial weights and the batches.")
+@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@click.option("--data-preset", type=click.Choice(PRESETS), default="paper", show_default=True,
+              help="Dataset to train on ($DKS_GYM_HOME/data/BENCHMARK-PRESET.h5).")
+@click.option("--resume/--restart", default=True, show_default=True,
+              help="Continue from an existing checkpoint, or start afresh and overwrite it.")
+@click.option("--checkpoint-every", type=click.IntRange(min=1), default=None,
+              help="Steps between checkpoints (default: a tenth of the steps, at most 1000).")
+@click.option("--eval/--no-eval", "evaluate", default=True, show_default=True,
+              help="Report the one-step error on the training data against predicting no change.")
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | None, batch_size: int | None,
+          lr: float | None, seed: int, device: str, data_preset: str, resume: bool, checkpoint_every: int | None,
+          evaluate: bool, progress: bool) -> None:
+    """Train BENCHMARK's latent models into checkpoints under $DKS_GYM_HOME/models (pDMD: fit)."""
+    from .dataset import DatasetMissing, SchemaError, load_dataset
+    from .home import DataHomeError
+    from .models.training import one_step_error, train_model
+
+    kinds = ["koopman", "mlp", "xlstm", "pdmd"] if model == "all" else [model]
+    try:
+        ds = load_dataset(benchmark.lower(), data_preset)
+    except (DatasetMissing, SchemaError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    for kind in kinds:
+        try:
+            result = train_model(
+                benchmark.lower(), kind, r, preset, T, dataset=ds, steps=steps, batch_size=batch_size, lr=lr,
+                seed=seed, device=device, resume=resume, checkpoint_every=checkpoint_every, progress=progress,
+            )
+        except (ValueError, DataHomeError) as exc:
+            raise click.ClickException(str(exc)) from exc
+        if result.loaded_only:
+            line = f"{kind}: already trained, loaded in {result.wall_time_s:.1f} s"
+        elif kind == "pdmd":
+            line = f"pdmd: POD + parametric DMD fitted in {result.wall_time_s:.1f} s"
+        else:
+            line = (f"{kind}: {result.new_steps} steps in {result.wall_time_s:.1f} s "
+                    f"({result.steps_done} in all)")
+        if len(result.losses):
+            line += f", final loss {result.losses[-1, 0]:.3e} (normalized)"
+        click.echo(f"{line} -> {result.path}")
+        if evaluate:
+            err = one_step_error(result.model, ds)
+            click.echo(
+                f"  one-step MSE on {err['pairs']} training pairs: {err['model_mse']:.3e} "
+                f"(persistence {err['persistence_mse']:.3e}, ratio {err['model_mse'] / err['persistence_mse']:.3g})"
+            )
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

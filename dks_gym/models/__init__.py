@@ -2,12 +2,22 @@
 
 ``build_model(benchmark, model, r=32, preset="paper" | "lite")`` returns a :class:`LatentModel` with the
 uniform interface ``encode``/``decode`` (physical units), ``forecast``/``forecast_jacobian`` and
-``observe``, batched over a leading dimension.
+``observe``, batched over a leading dimension. :func:`train_model` trains one (Eqs. 10-11) into a
+checkpoint and :func:`load_model` loads a trained one (or trains it when asked).
 """
 
 from __future__ import annotations
 
 from .backbones import ConvDecoder, ConvEncoder, ParametricEncoder
+from .checkpoint import (
+    CheckpointMissing,
+    checkpoint_path,
+    dataset_identity,
+    model_from_checkpoint,
+    read_checkpoint,
+    read_metadata,
+    save_checkpoint,
+)
 from .embedding import ParameterEmbedding
 from .koopman import KoopmanOperator, dissipative_generator
 from .latent_model import LatentModel, NeuralLatentModel, build_model, count_parameters
@@ -24,6 +34,17 @@ from .presets import (
     backbone_spec,
     benchmark_shape,
 )
+from .training import (
+    TRAINING_SCHEDULES,
+    TrainingResult,
+    TrainingSchedule,
+    WindowSampler,
+    load_model,
+    one_step_error,
+    train_model,
+    training_loss,
+    training_schedule,
+)
 from .xlstm import XLSTMTransition, xlstm_block_stack
 
 __all__ = [
@@ -33,8 +54,10 @@ __all__ = [
     "PAPER_LATENT_PARAM_COUNTS",
     "PAPER_PARAM_COUNTS",
     "PDMD",
+    "TRAINING_SCHEDULES",
     "BackboneSpec",
     "BenchmarkShape",
+    "CheckpointMissing",
     "ConvDecoder",
     "ConvEncoder",
     "KoopmanOperator",
@@ -43,12 +66,26 @@ __all__ = [
     "NeuralLatentModel",
     "ParameterEmbedding",
     "ParametricEncoder",
+    "TrainingResult",
+    "TrainingSchedule",
+    "WindowSampler",
     "XLSTMTransition",
     "backbone_spec",
     "benchmark_shape",
     "build_model",
+    "checkpoint_path",
     "count_parameters",
+    "dataset_identity",
     "dissipative_generator",
+    "load_model",
+    "model_from_checkpoint",
+    "one_step_error",
+    "read_checkpoint",
+    "read_metadata",
+    "save_checkpoint",
     "streamed_pod",
+    "train_model",
+    "training_loss",
+    "training_schedule",
     "xlstm_block_stack",
 ]

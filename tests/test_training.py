@@ -1,0 +1,227 @@
+"""Training (Eqs. 10-11), resumable checkpoints and load_model, on the Burgers `small` dataset with lite models."""
+
+from __future__ import annotations
+
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from dks_gym.cli import main
+from dks_gym.dataset import Dataset
+from dks_gym.models import (
+    CheckpointMissing,
+    WindowSampler,
+    build_model,
+    load_model,
+    one_step_error,
+    read_metadata,
+    train_model,
+    training_loss,
+)
+
+R = 8
+STEPS = 150
+NEURAL = ("koopman", "mlp", "xlstm")
+
+
+@pytest.fixture(scope="module")
+def ds(burgers_small) -> Dataset:
+    return Dataset(burgers_small)
+
+
+@pytest.fixture(scope="module")
+def trained(ds, tmp_path_factory):
+    """A short lite training of every model (pDMD: its fit), written to a private directory."""
+    out = tmp_path_factory.mktemp("checkpoints")
+    return {
+        kind: train_model("burgers", kind, R, "lite", dataset=ds, steps=STEPS, batch_size=32, progress=False,
+                          path=out / f"{kind}.safetensors")
+        for kind in (*NEURAL, "pdmd")
+    }
+
+
+def _normalized(ds: Dataset, x: torch.Tensor) -> torch.Tensor:
+    mean = torch.as_tensor(ds.stats_mean, dtype=x.dtype).view(-1, 1)
+    std = torch.as_tensor(ds.stats_std, dtype=x.dtype).view(-1, 1)
+    return (x - mean) / std
+
+
+# Loss --------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["koopman", "xlstm"])
+@pytest.mark.parametrize("horizon", [1, 3])
+def test_loss_is_eq_11_evaluated_sample_by_sample(ds, kind, horizon):
+    model = build_model("burgers", kind, r=R, preset="lite", dataset=ds, seed=1)
+    sampler = WindowSampler(ds, horizon, seed=2)
+    x, mu = sampler.sample(3)
+    loss, terms = training_loss(model, x, mu)
+    # Second implementation: one sample and one step at a time, statistics taken from the file.
+    rec, pred, lat = [], [], []
+    with torch.no_grad():
+        for b in range(3):
+            m = mu[b: b + 1]
+            z = model.encode(x[b, :1], m)
+            rec.append(torch.mean((model.decode_normalized(z, m) - _normalized(ds, x[b, 0])) ** 2))
+            for j in range(1, horizon + 1):
+                z = model.forecast(z, m)
+                pred.append(torch.mean((model.decode_normalized(z, m) - _normalized(ds, x[b, j])) ** 2))
+                lat.append(torch.mean((z - model.encode(x[b, j: j + 1], m)) ** 2))
+    expected = [torch.stack(t).mean() for t in (rec, pred, lat)]
+    torch.testing.assert_close(terms[1:], torch.stack(expected), rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(loss.detach(), sum(expected), rtol=1e-5, atol=1e-7)
+
+
+def test_sampler_windows_are_consecutive_frames_of_one_trajectory(ds):
+    for in_memory in (True, False):
+        sampler = WindowSampler(ds, 2, seed=5, in_memory=in_memory)
+        traj, start = sampler.draw(4)
+        x, mu = sampler.windows(traj, start)
+        assert x.shape == (4, 3, 1, 1024)
+        for b in range(4):
+            i, k = int(traj[b]), int(start[b])
+            assert 0 <= k <= ds.n_frames - 3
+            np.testing.assert_array_equal(x[b].numpy(), ds.trajectory("train", i)[k: k + 3])
+            assert float(mu[b]) == ds.params("train")[i]
+    a, b = WindowSampler(ds, 1, seed=7), WindowSampler(ds, 1, seed=7, in_memory=False)
+    assert all(torch.equal(u, v) for u, v in zip(a.sample(8), b.sample(8)))  # same seed, same batches
+
+
+# Learning ----------------------------------------------------------------------------------------------
+def test_loss_decreases(trained):
+    losses = trained["koopman"].losses
+    assert losses.shape == (STEPS, 4)
+    np.testing.assert_allclose(losses[:, 0], losses[:, 1:].sum(axis=1), rtol=1e-5)
+    assert losses[50:60, 0].mean() < 0.2 * losses[:10, 0].mean()
+    assert losses[-10:, 0].mean() < 0.9 * losses[50:60, 0].mean()
+
+
+@pytest.mark.parametrize("kind", NEURAL)
+def test_short_training_learns_the_fields(ds, trained, kind):
+    # Baseline independent of the model: predicting the train mean field has the train variance as error.
+    # 150 lite steps get the one-step decoded error to ~3 % of it; an untrained model is above 100 %.
+    fields = np.asarray(ds.fields("train"), dtype=np.float64)
+    mean_field_error = float(((fields - fields.mean()) ** 2).mean())
+    err = one_step_error(trained[kind].model, ds)
+    assert err["pairs"] == ds.n_trajectories("train") * (ds.n_frames - 1)
+    assert err["model_mse"] < 0.1 * mean_field_error
+    untrained = build_model("burgers", kind, r=R, preset="lite", dataset=ds).eval()
+    assert one_step_error(untrained, ds)["model_mse"] > 0.5 * mean_field_error
+
+
+def test_pdmd_trains_through_the_same_entry_point(ds, trained):
+    result = trained["pdmd"]
+    direct = build_model("burgers", "pdmd", r=R, dataset=ds).fit_dataset(ds, seed=0)
+    assert torch.equal(result.model.basis, direct.basis)
+    assert read_metadata(result.path)["model"] == "pdmd"
+    # On its own training data the fitted pDMD beats predicting "no change" by orders of magnitude.
+    err = one_step_error(result.model, ds)
+    assert err["model_mse"] < 0.01 * err["persistence_mse"]
+
+
+# Multi-step --------------------------------------------------------------------------------------------
+def test_multistep_training_runs_and_is_recorded(ds, tmp_path):
+    result = train_model("burgers", "mlp", R, "lite", T=2, dataset=ds, steps=4, batch_size=4, progress=False,
+                         path=tmp_path / "t2.safetensors")
+    assert result.losses.shape == (4, 4) and np.isfinite(result.losses).all()
+    meta = read_metadata(result.path)
+    assert (meta["T"], meta["steps_done"], meta["complete"]) == (2, 4, True)
+    with pytest.raises(ValueError, match="T = 2, not 1"):
+        load_model("burgers", "mlp", R, "lite", T=1, path=result.path)
+
+
+# Resume ------------------------------------------------------------------------------------------------
+def test_interrupted_training_resumes_to_bit_identical_weights(ds, tmp_path):
+    kwargs = {"dataset": ds, "steps": 6, "batch_size": 4, "checkpoint_every": 2, "progress": False}
+    full = train_model("burgers", "koopman", R, "lite", path=tmp_path / "full.safetensors", **kwargs)
+
+    def interrupt(step, terms):
+        if step == 5:
+            raise KeyboardInterrupt
+
+    part = tmp_path / "part.safetensors"
+    with pytest.raises(KeyboardInterrupt):
+        train_model("burgers", "koopman", R, "lite", path=part, on_step=interrupt, **kwargs)
+    meta = read_metadata(part)
+    assert (meta["steps_done"], meta["complete"]) == (4, False)
+    with pytest.raises(CheckpointMissing, match="stopped at step 4 of 6"):
+        load_model("burgers", "koopman", R, "lite", dataset=ds, path=part)
+
+    resumed = train_model("burgers", "koopman", R, "lite", path=part, **kwargs)
+    assert resumed.new_steps == 2
+    np.testing.assert_array_equal(resumed.losses, full.losses)
+    a, b = full.model.state_dict(), resumed.model.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+    with pytest.raises(ValueError, match="seed"):
+        train_model("burgers", "koopman", R, "lite", path=part, seed=1, **kwargs)
+    restarted = train_model("burgers", "koopman", R, "lite", path=part, resume=False, **kwargs)
+    assert restarted.new_steps == 6
+
+
+# Checkpoints -------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", (*NEURAL, "pdmd"))
+def test_checkpoint_round_trip_is_bit_identical(ds, trained, kind):
+    model = trained[kind].model
+    loaded = load_model("burgers", kind, R, "lite", dataset=ds, path=trained[kind].path)
+    assert type(loaded) is type(model) and not loaded.training
+    x = torch.as_tensor(ds.trajectory("test", 0)[:5])
+    mu = torch.full((5,), float(ds.params("test")[0]))
+
+    def outputs(m):
+        with torch.no_grad():
+            z = m.encode(x, mu)
+            return z, m.forecast(z, mu), m.decode(z, mu), m.forecast_jacobian(z, mu)
+
+    assert all(torch.equal(u, v) for u, v in zip(outputs(model), outputs(loaded)))
+
+
+def test_wrong_benchmark_r_model_or_dataset_is_refused(ds, trained, tmp_path):
+    path = trained["koopman"].path
+    with pytest.raises(ValueError, match="benchmark = 'burgers', not 'cylinder'"):
+        load_model("cylinder", "koopman", R, "lite", path=path)
+    with pytest.raises(ValueError, match="r = 8, not 32"):
+        load_model("burgers", "koopman", 32, "lite", path=path)
+    with pytest.raises(ValueError, match="model = 'koopman', not 'mlp'"):
+        load_model("burgers", "mlp", R, "lite", path=path)
+    # A byte-identical copy elsewhere is the same dataset; changing one parameter makes it another one.
+    copy = tmp_path / "copy.h5"
+    shutil.copy(ds.path, copy)
+    load_model("burgers", "koopman", R, "lite", dataset=Dataset(copy), path=path)
+    with h5py.File(copy, "r+") as f:
+        f["train/params"][0] += 1e-3
+    with pytest.raises(ValueError, match="trained on another dataset"):
+        load_model("burgers", "koopman", R, "lite", dataset=Dataset(copy), path=path)
+
+
+def test_load_model_missing_names_the_train_command(ds, tmp_path, monkeypatch):
+    monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="dks-gym train burgers --model koopman --preset lite --r 8 --T 1 "
+                                                "--data-preset small"):
+        load_model("burgers", "koopman", R, dataset=ds)
+    # train_if_missing fits (pDMD: quickly) into the data home, and the next call only loads.
+    first = load_model("burgers", "pdmd", R, dataset=ds, train_if_missing=True, progress=False)
+    path = tmp_path / "models" / "burgers-pdmd-r8-data-small.safetensors"
+    stamp = path.stat().st_mtime_ns
+    second = load_model("burgers", "pdmd", R, dataset=ds)
+    assert path.stat().st_mtime_ns == stamp and torch.equal(first.basis, second.basis)
+
+
+def test_cli_train(ds, tmp_path, monkeypatch):
+    monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path))
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "burgers-small.h5").symlink_to(ds.path)
+    args = ["train", "burgers", "--model", "mlp", "--r", "8", "--steps", "3", "--batch-size", "2",
+            "--data-preset", "small", "--no-progress"]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "mlp" in result.output and " s" in result.output
+    meta = read_metadata(tmp_path / "models" / "burgers-mlp-lite-r8-T1-data-small.safetensors")
+    assert (meta["steps_done"], meta["batch_size"], meta["complete"]) == (3, 2, True)
+    again = CliRunner().invoke(main, args)  # the default --resume finds the finished checkpoint
+    assert again.exit_code == 0 and "already trained" in again.output
+    bad = CliRunner().invoke(main, ["train", "burgers", "--model", "mlp", "--device", "cuda"] + args[4:])
+    if not torch.cuda.is_available():
+        assert bad.exit_code != 0 and "CUDA is not available" in bad.output
