@@ -332,6 +332,7 @@ class Dataset:
         self.dt = float(f.attrs["dt"])
         self.generator = json.loads(_as_str(f.attrs["generator"]))
         self.preset = _as_str(f.attrs["preset"]) if "preset" in f.attrs else None
+        self.created = _as_str(f.attrs["created"])
         self.time = np.asarray(f["time"])
         self.cell_type = np.asarray(f["cell_type"], dtype=np.int8) if "cell_type" in f else None
         self.coords = tuple(np.asarray(f["coords"][a]) for a in AXES[: self.benchmark.ndim])

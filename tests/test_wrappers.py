@@ -145,3 +145,30 @@ def test_sb3_ppo_smoke(models: dict) -> None:
     obs = venv.reset()
     action, _ = agent.predict(obs, deterministic=True)
     assert action.shape == (2, 16) and (action < 32).all()
+
+
+def test_koopman_ekf_beats_its_forward_run_on_burgers(burgers_small: Path, tmp_path_factory) -> None:
+    """The paper's central effect at lite scale: assimilating 16 noisy sensors beats the open-loop rollout.
+
+    Measured with this setup (300 lite steps): final-time MSE 0.042 forward vs 0.0097 EKF, 3-trajectory mean.
+    """
+    from dks_gym.models import train_model
+
+    ds = Dataset(burgers_small)
+    path = tmp_path_factory.mktemp("ckpt") / "koopman.safetensors"
+    model = train_model("burgers", "koopman", r=32, preset="lite", dataset=ds, steps=300, progress=False,
+                        path=path).model
+    finals = {}
+    for filt in ("none", "ekf"):
+        env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter=filt)
+        finals[filt] = np.mean([_final(env, t) for t in range(3)])
+    assert finals["ekf"] < 0.5 * finals["none"], finals
+
+
+def _final(env: gym.Env, trajectory: int) -> float:
+    env.reset(seed=0, options={"trajectory": trajectory})
+    done = False
+    while not done:
+        _, _, terminated, truncated, info = env.step(None)
+        done = terminated or truncated
+    return info["mse"]

@@ -117,9 +117,7 @@ def dataset_identity(dataset: Any) -> dict[str, Any]:
 
 def _created(dataset: Any) -> str | None:
     created = getattr(dataset, "created", None)
-    if created is None and hasattr(dataset, "_h5"):  # Dataset keeps the attribute in its open file only
-        created = dataset._h5.attrs.get("created")
-    return created.decode() if isinstance(created, bytes) else (None if created is None else str(created))
+    return None if created is None else str(created)
 
 
 # Metadata --------------------------------------------------------------------------------------------
