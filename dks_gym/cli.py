@@ -121,5 +121,19 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
             )
 
 
+def _register_commands() -> None:
+    from .evaluation.commands import COMMANDS
+
+    for command in COMMANDS:
+        main.add_command(command)
+    try:  # the top-level agents/ package ships beside dks_gym; registered here so one console script serves both
+        from agents.cli import evaluate_placement_command
+    except ImportError:  # pragma: no cover - dks_gym used without the agents package
+        return
+    main.add_command(evaluate_placement_command)
+
+
+_register_commands()
+
 if __name__ == "__main__":  # pragma: no cover
     main()

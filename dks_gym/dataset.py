@@ -4,6 +4,7 @@ Layout of one file (one benchmark, one preset)::
 
     /train/fields   float32 (n_traj, n_t, C, *grid)   physical units, chunked by trajectory, gzip
     /train/params   float64 (n_traj,)
+    /train/extras/NAME  optional per-trajectory series (n_traj, ...), e.g. lift and drag
     /test/...       the same
     /time           (n_t,)
     /cell_type      int8 (*grid)        absent for burgers
@@ -174,6 +175,18 @@ def _write(data: GeneratedData, bench: Benchmark, tmp: Path, extra_attrs: dict[s
         for split, done in written.items():
             if not done.all():
                 raise ValueError(f"generator left {split} trajectories {np.flatnonzero(~done).tolist()} unwritten")
+        for split, series in data.extras.items():
+            if split not in SPLITS:
+                raise ValueError(f"generator produced extras for unknown split {split!r}; expected {SPLITS}")
+            group = f[split].create_group("extras")
+            for name, values in series.items():
+                values = np.asarray(values)
+                if values.shape[:1] != (len(written[split]),):
+                    raise ValueError(
+                        f"generator produced extras {split}/{name} with shape {values.shape}; the first axis "
+                        f"must be the {len(written[split])} trajectories of the split"
+                    )
+                group.create_dataset(name, data=values)
         stats_group = f.create_group("stats")
         stats_group.create_dataset("mean", data=stats.mean)
         stats_group.create_dataset("std", data=stats.std)
@@ -369,6 +382,11 @@ class Dataset:
     def params(self, split: str) -> np.ndarray:
         """Parameter value of every trajectory of ``split``."""
         return np.asarray(self._h5[self._check_split(split)]["params"], dtype=np.float64)
+
+    def extras(self, split: str) -> dict[str, np.ndarray]:
+        """The generator's per-trajectory side series of ``split`` (e.g. lift, drag); empty if none."""
+        group = self._h5[self._check_split(split)].get("extras")
+        return {} if group is None else {name: np.asarray(group[name]) for name in group}
 
     def n_trajectories(self, split: str) -> int:
         return int(self.fields(split).shape[0])

@@ -211,3 +211,22 @@ def test_dataset_survives_fork_style_reopen(tmp_path: Path) -> None:
     clone = pickle.loads(pickle.dumps(ds))
     np.testing.assert_array_equal(clone.trajectory("train", 1), ds.trajectory("train", 1))
     assert os.fspath(clone.path) == os.fspath(path)
+
+
+def test_generator_extras_round_trip_and_bad_shape_is_refused(tmp_path: Path) -> None:
+    data = synthetic_data("cylinder", n_train=2, n_test=1)
+    lift = np.arange(2 * 5, dtype=np.float64).reshape(2, 5)
+    data.extras = {"train": {"lift": lift, "t_start": np.array([30.0, 31.5])}, "test": {"lift": lift[:1]}}
+    path = write_dataset(data, "cylinder", tmp_path / "extras.h5")
+    with Dataset(path) as ds:
+        np.testing.assert_array_equal(ds.extras("train")["lift"], lift)
+        np.testing.assert_array_equal(ds.extras("train")["t_start"], [30.0, 31.5])
+        assert set(ds.extras("test")) == {"lift"}
+    plain = write_dataset(synthetic_data("cylinder"), "cylinder", tmp_path / "plain.h5")
+    with Dataset(plain) as ds:
+        assert ds.extras("train") == {}
+    data = synthetic_data("cylinder", n_train=2, n_test=1)
+    data.extras = {"train": {"lift": lift[:1]}}
+    with pytest.raises(ValueError, match="first axis must be the 2 trajectories"):
+        write_dataset(data, "cylinder", tmp_path / "bad.h5")
+    assert not (tmp_path / "bad.h5").exists()

@@ -36,6 +36,9 @@ class GeneratedData:
     generator: dict[str, Any]
     coords: tuple[np.ndarray, ...]
     cell_type: np.ndarray | None = None
+    # Per-trajectory side series (lift, drag, water volume...): {split: {name: (n_traj, ...) array}};
+    # stored under /{split}/extras/{name}, with one row per trajectory in the split's order.
+    extras: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,94 @@
+"""Click commands ``reproduce``, ``compare`` and ``demo`` (registered on ``dks-gym`` with ``main.add_command``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from ..benchmarks import BENCHMARKS
+from .reproduce import EXPERIMENTS
+
+
+def _errors() -> tuple[type[BaseException], ...]:
+    from ..benchmarks import GeneratorUnavailable
+    from ..dataset import DatasetMissing, SchemaError
+    from ..filters import FilterDivergence
+    from ..home import DataHomeError
+    from ..models.checkpoint import CheckpointMissing
+    from .results import ResultsError
+
+    return (CheckpointMissing, DatasetMissing, SchemaError, GeneratorUnavailable, DataHomeError, ResultsError,
+            FilterDivergence, ValueError)
+
+
+@click.command("reproduce")
+@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False))
+@click.option("--preset", type=click.Choice(["lite", "paper"]), default="lite", show_default=True,
+              help="Model architecture and training schedule.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default: results/BENCHMARK-PRESET).")
+@click.option("--only", "only", multiple=True, type=click.Choice(list(EXPERIMENTS)),
+              help="Run only this experiment (repeatable). Default: all of them.")
+@click.option("--data-preset", type=click.Choice(["paper", "small"]), default="paper", show_default=True,
+              help="Dataset preset to evaluate on (and to train on when a model is missing).")
+@click.option("--no-train", is_flag=True, help="Fail instead of training a missing model.")
+@click.option("--skip-done", is_flag=True, help="Skip the experiments already in OUT/results.json.")
+@click.option("--noise-seed", type=int, default=0, show_default=True, help="Seed of the measurement noise.")
+def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None, only: tuple[str, ...],
+                      data_preset: str, no_train: bool, skip_done: bool, noise_seed: int) -> None:
+    """Run the paper's Section IV experiments on BENCHMARK; write results.json, tables.md and figures/.
+
+    Experiments: main (forward vs EKF, approximate and exact IC), enkf, ensemble (n = 20/40/64), noise
+    (10%/30%), latent (r = 16/64), multistep (T = 2/4/8), operator_norm, timing. Missing models are trained
+    (finished trainings are reused, interrupted ones resumed). The results file is rewritten after every
+    experiment; a rerun keeps the records of the experiments it does not run, and --skip-done continues an
+    interrupted run.
+    """
+    from .reproduce import reproduce
+
+    try:
+        reproduce(benchmark.lower(), preset=preset, device=device, out=out, only=only or None,
+                  data_preset=data_preset, train=not no_train, skip_done=skip_done, noise_seed=noise_seed,
+                  log=click.echo)
+    except _errors() as exc:
+        raise click.ClickException(str(exc)) from exc
+
+
+@click.command("compare")
+@click.argument("a", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("b", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--experiment", default=None, help="Only the records of this experiment.")
+def compare_command(a: Path, b: Path, experiment: str | None) -> None:
+    """Print the ratios B / A of final MSE, operator norm and DA-step time for the runs in both results files."""
+    from .results import ResultsError, compare, format_comparison, load_results
+
+    try:
+        doc_a, doc_b = load_results(a), load_results(b)
+        rows = compare(doc_a, doc_b)
+    except ResultsError as exc:
+        raise click.ClickException(str(exc)) from exc
+    if experiment is not None:
+        rows = [r for r in rows if r["experiment"] == experiment]
+    click.echo(f"A = {a}\nB = {b}")
+    click.echo(format_comparison(doc_a, doc_b, rows))
+
+
+@click.command("demo")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("dks-gym-demo"),
+              show_default=True, help="Folder for the figure and the results file.")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+def demo_command(out: Path, device: str) -> None:
+    """Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a figure (minutes)."""
+    from .demo import run_demo
+
+    try:
+        run_demo(out, device=device, log=click.echo)
+    except _errors() as exc:
+        raise click.ClickException(str(exc)) from exc
+
+
+COMMANDS = (reproduce_command, compare_command, demo_command)
+
+__all__ = ["COMMANDS", "compare_command", "demo_command", "reproduce_command"]

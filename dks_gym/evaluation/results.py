@@ -1,0 +1,372 @@
+"""The results file of ``dks-gym reproduce``: a versioned JSON schema, atomic save, validation, comparison.
+
+One file holds the runs of one benchmark with one model preset::
+
+    {
+      "schema": "dks-gym-results", "schema_version": 1,
+      "benchmark": "burgers", "preset": "lite",
+      "dataset": {"path", "preset", "created", "fingerprint"},      # identity of the data evaluated on
+      "config": {...},                                               # what every record shares (sensors, P0, Q, seeds,
+                                                                     # device, versions, created, ...)
+      "models": [{"model", "r", "T", "preset", "checkpoint", "steps", "train_time_s", ...}],   # optional
+      "records": [RECORD, ...]
+    }
+
+A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run over the test split::
+
+    experiment  str     "main", "enkf", "ensemble", "noise", "latent", "multistep", "operator_norm", "timing"
+    model       str     "koopman", "pdmd", "mlp", "xlstm"
+    filter      str     "forward", "ekf", "enkf"
+    initial     str     "approximate", "exact"
+    noise       float   noise level (sigma / max |observed channel|)
+    r, T        int     latent dimension, training horizon
+    n_members   int | null      EnKF ensemble size (null otherwise)
+    batch       int     trajectories run together (the test split, or 1 for timing)
+    final_mse_mean, final_mse_std   float | null   Eq. 18 at the final frame, mean and sample std over trajectories
+    per_step_mse_mean               [n_t]          mean over trajectories at every frame (frame 0 = initial estimate)
+    per_trajectory_final_mse        [B]
+    per_trajectory_step_mse         [B][n_t]       (optional) for the temporal error figures
+    max_forecast_norm               [B] | null     max_k ||F_k||_2 per trajectory (EKF, forward run)
+    da_step_seconds                 float          mean wall time of one filter step of the whole batch
+    wall_time                       float          seconds for the whole run
+    trajectories, params            [B]            (optional) test indices and parameter values
+    divergence_resets               [B]            (optional) restarts after a non-finite filter state
+
+Non-finite numbers are stored as ``null`` (strict JSON). :func:`compare` pairs the records of two files
+by their key and gives the ratios B / A.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import uuid
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SCHEMA = "dks-gym-results"
+SCHEMA_VERSION = 1
+RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_members")
+FILTERS = ("forward", "ekf", "enkf")
+MODELS = ("koopman", "pdmd", "mlp", "xlstm")
+INITIALS = ("approximate", "exact")
+_REQUIRED_TOP = ("schema", "schema_version", "benchmark", "preset", "dataset", "config", "records")
+_REQUIRED_RECORD = RECORD_KEY + (
+    "batch", "final_mse_mean", "final_mse_std", "per_step_mse_mean", "per_trajectory_final_mse",
+    "max_forecast_norm", "da_step_seconds", "wall_time",
+)
+
+
+class ResultsError(ValueError):
+    """A results file does not follow the schema; the message names the offending item."""
+
+
+# Building ----------------------------------------------------------------------------------------------
+def _number(x: Any) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _numbers(values: Any) -> Any:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim == 0:
+        return _number(arr)
+    return [_numbers(v) for v in arr] if arr.ndim > 1 else [_number(v) for v in arr]
+
+
+def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool = True) -> dict[str, Any]:
+    """A schema record from an :class:`~dks_gym.evaluation.assimilation.AssimilationResult`."""
+    cfg = result.config
+    record: dict[str, Any] = {
+        "experiment": experiment,
+        "model": result.model,
+        "filter": cfg.filter,
+        "initial": cfg.initial,
+        "noise": float(cfg.noise_level),
+        "r": int(result.r),
+        "T": int(T),
+        "n_members": int(cfg.n_members) if cfg.filter == "enkf" else None,
+        "batch": int(result.batch),
+        "final_mse_mean": _number(result.final_mse_mean),
+        "final_mse_std": _number(result.final_mse_std),
+        "per_step_mse_mean": _numbers(result.per_step_mse_mean),
+        "per_trajectory_final_mse": _numbers(result.final_mse),
+        "max_forecast_norm": None if result.max_forecast_norm is None else _numbers(result.max_forecast_norm),
+        "da_step_seconds": _number(result.da_step_seconds),
+        "wall_time": _number(result.wall_time),
+        "trajectories": [int(i) for i in result.trajectories],
+        "params": _numbers(result.params),
+        "divergence_resets": [int(n) for n in result.divergence_resets],
+    }
+    if keep_curves:
+        record["per_trajectory_step_mse"] = _numbers(result.step_mse)
+    return record
+
+
+def new_results(benchmark: str, preset: str, dataset: dict[str, Any], config: dict[str, Any],
+                records: Iterable[dict[str, Any]] = (), models: Iterable[dict[str, Any]] = ()) -> dict[str, Any]:
+    """A results document (validated)."""
+    doc = {
+        "schema": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "benchmark": benchmark,
+        "preset": preset,
+        "dataset": dict(dataset),
+        "config": dict(config),
+        "models": list(models),
+        "records": list(records),
+    }
+    validate(doc)
+    return doc
+
+
+def record_key(record: dict[str, Any]) -> tuple:
+    """The identity of a run: (experiment, model, filter, initial, noise, r, T, n_members)."""
+    return tuple(record[k] for k in RECORD_KEY)
+
+
+def run_key(record: dict[str, Any]) -> tuple:
+    """The identity of a run regardless of the experiment that asked for it."""
+    return record_key(record)[1:]
+
+
+# Validation ---------------------------------------------------------------------------------------------
+def _is_number(x: Any, *, nullable: bool = True) -> bool:
+    if x is None:
+        return nullable
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _check_list(rec: dict[str, Any], name: str, where: str, length: int | None) -> None:
+    values = rec[name]
+    if not isinstance(values, list) or not all(_is_number(v) for v in values):
+        raise ResultsError(f"{where}: {name!r} must be a list of numbers (null for non-finite), got {values!r:.80}")
+    if length is not None and len(values) != length:
+        raise ResultsError(f"{where}: {name!r} has {len(values)} entries but the record's batch is {length}")
+
+
+def validate_record(rec: Any, where: str = "record") -> None:
+    """Raise :class:`ResultsError` naming what is missing or malformed in one record."""
+    if not isinstance(rec, dict):
+        raise ResultsError(f"{where} must be a JSON object, got {type(rec).__name__}")
+    missing = [k for k in _REQUIRED_RECORD if k not in rec]
+    if missing:
+        raise ResultsError(f"{where} lacks {', '.join(missing)}")
+    if not isinstance(rec["experiment"], str) or not rec["experiment"]:
+        raise ResultsError(f"{where}: 'experiment' must be a non-empty string")
+    for name, allowed in (("model", MODELS), ("filter", FILTERS), ("initial", INITIALS)):
+        if rec[name] not in allowed:
+            raise ResultsError(f"{where}: {name!r} is {rec[name]!r}; expected one of {', '.join(allowed)}")
+    if not _is_number(rec["noise"], nullable=False) or rec["noise"] <= 0:
+        raise ResultsError(f"{where}: 'noise' must be a positive number, got {rec['noise']!r}")
+    for name in ("r", "T", "batch"):
+        if not isinstance(rec[name], int) or isinstance(rec[name], bool) or rec[name] < 1:
+            raise ResultsError(f"{where}: {name!r} must be a positive integer, got {rec[name]!r}")
+    if rec["filter"] == "enkf":
+        if not isinstance(rec["n_members"], int) or rec["n_members"] < 2:
+            raise ResultsError(f"{where}: an EnKF record needs 'n_members' >= 2, got {rec['n_members']!r}")
+    elif rec["n_members"] is not None:
+        raise ResultsError(f"{where}: 'n_members' must be null for filter {rec['filter']!r}")
+    for name in ("final_mse_mean", "final_mse_std", "da_step_seconds", "wall_time"):
+        if not _is_number(rec[name]):
+            raise ResultsError(f"{where}: {name!r} must be a number or null, got {rec[name]!r}")
+    batch = rec["batch"]
+    _check_list(rec, "per_trajectory_final_mse", where, batch)
+    _check_list(rec, "per_step_mse_mean", where, None)
+    if len(rec["per_step_mse_mean"]) < 2:
+        raise ResultsError(f"{where}: 'per_step_mse_mean' must have one entry per frame (at least 2)")
+    if rec["max_forecast_norm"] is not None:
+        _check_list(rec, "max_forecast_norm", where, batch)
+    elif rec["filter"] != "enkf":
+        raise ResultsError(f"{where}: 'max_forecast_norm' may be null only for the EnKF (it uses no Jacobian)")
+    curves = rec.get("per_trajectory_step_mse")
+    if curves is not None:
+        n_t = len(rec["per_step_mse_mean"])
+        if (not isinstance(curves, list) or len(curves) != batch
+                or not all(isinstance(c, list) and len(c) == n_t and all(_is_number(v) for v in c) for c in curves)):
+            raise ResultsError(f"{where}: 'per_trajectory_step_mse' must be {batch} lists of {n_t} numbers")
+    for name in ("trajectories", "params", "divergence_resets"):
+        if name in rec:
+            _check_list(rec, name, where, batch)
+
+
+def validate(doc: Any) -> dict[str, Any]:
+    """Raise :class:`ResultsError` if ``doc`` is not a results document of this schema; return it."""
+    if not isinstance(doc, dict):
+        raise ResultsError(f"a results file holds a JSON object, got {type(doc).__name__}")
+    missing = [k for k in _REQUIRED_TOP if k not in doc]
+    if missing:
+        raise ResultsError(f"results lack {', '.join(missing)}")
+    if doc["schema"] != SCHEMA:
+        raise ResultsError(f"'schema' is {doc['schema']!r}, not {SCHEMA!r}: this is not a dks-gym results file")
+    if doc["schema_version"] != SCHEMA_VERSION:
+        raise ResultsError(
+            f"schema_version {doc['schema_version']!r} is not supported (this dks-gym reads {SCHEMA_VERSION}); "
+            "upgrade dks-gym or rerun `dks-gym reproduce`"
+        )
+    for name in ("benchmark", "preset"):
+        if not isinstance(doc[name], str) or not doc[name]:
+            raise ResultsError(f"{name!r} must be a non-empty string")
+    for name in ("dataset", "config"):
+        if not isinstance(doc[name], dict):
+            raise ResultsError(f"{name!r} must be a JSON object")
+    if not isinstance(doc.get("models", []), list):
+        raise ResultsError("'models' must be a list")
+    if not isinstance(doc["records"], list):
+        raise ResultsError("'records' must be a list")
+    seen: dict[tuple, int] = {}
+    for i, rec in enumerate(doc["records"]):
+        validate_record(rec, f"records[{i}]")
+        key = record_key(rec)
+        if key in seen:
+            raise ResultsError(f"records[{i}] repeats records[{seen[key]}] (same {', '.join(RECORD_KEY)})")
+        seen[key] = i
+    return doc
+
+
+# Files ---------------------------------------------------------------------------------------------------
+def save_results(doc: dict[str, Any], path: str | Path) -> Path:
+    """Validate and write ``doc`` to ``path`` atomically (temporary file in the same folder, then rename)."""
+    validate(doc)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    try:
+        with open(tmp, "w") as f:
+            json.dump(doc, f, indent=1, allow_nan=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def load_results(path: str | Path) -> dict[str, Any]:
+    """Read and validate a results file."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no results file at {path}; produce one with `dks-gym reproduce BENCHMARK --out DIR`")
+    try:
+        with open(path) as f:
+            doc = json.load(f)
+    except json.JSONDecodeError as exc:
+        raise ResultsError(f"{path} is not valid JSON ({exc})") from exc
+    try:
+        return validate(doc)
+    except ResultsError as exc:
+        raise ResultsError(f"{path}: {exc}") from exc
+
+
+def select(doc: dict[str, Any], **criteria: Any) -> list[dict[str, Any]]:
+    """The records whose fields equal ``criteria`` (e.g. ``experiment="main", filter="ekf"``)."""
+    return [r for r in doc["records"] if all(r.get(k) == v for k, v in criteria.items())]
+
+
+def merge(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """``new`` plus the records of ``old`` from experiments ``new`` did not run (same benchmark, preset, data)."""
+    if (old["benchmark"], old["preset"]) != (new["benchmark"], new["preset"]):
+        raise ResultsError(
+            f"cannot merge results of {old['benchmark']}/{old['preset']} into {new['benchmark']}/{new['preset']}"
+        )
+    if old["dataset"].get("fingerprint") != new["dataset"].get("fingerprint"):
+        raise ResultsError("cannot merge results computed on different datasets (fingerprints differ)")
+    ran = {r["experiment"] for r in new["records"]}
+    kept = [r for r in old["records"] if r["experiment"] not in ran]
+    models = {(m.get("model"), m.get("r"), m.get("T")): m for m in old.get("models", []) + new.get("models", [])}
+    out = dict(new, records=kept + new["records"], models=list(models.values()))
+    return validate(out)
+
+
+# Comparison ----------------------------------------------------------------------------------------------
+def _max_or_none(values: list | None) -> float | None:
+    finite = [v for v in values or [] if v is not None]
+    return max(finite) if finite else None
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    if a is None or b is None or a == 0:
+        return None
+    return b / a
+
+
+def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
+    """Pair the records of ``a`` and ``b`` by key; per pair the values and the ratios B / A.
+
+    Each row: the key fields, ``mse_a``, ``mse_b``, ``mse_ratio`` (final_mse_mean B / A), ``norm_ratio``
+    (max over trajectories of max_forecast_norm), ``time_ratio`` (da_step_seconds). Records present in only
+    one file are listed with ``only`` = "a" or "b" and no ratios.
+    """
+    validate(a)
+    validate(b)
+    index_b = {record_key(r): r for r in b["records"]}
+    rows: list[dict[str, Any]] = []
+    for ra in a["records"]:
+        key = record_key(ra)
+        row = dict(zip(RECORD_KEY, key))
+        rb = index_b.pop(key, None)
+        if rb is None:
+            rows.append(dict(row, only="a", mse_a=ra["final_mse_mean"]))
+            continue
+        norm_a, norm_b = _max_or_none(ra["max_forecast_norm"]), _max_or_none(rb["max_forecast_norm"])
+        rows.append(dict(
+            row, only=None, mse_a=ra["final_mse_mean"], mse_b=rb["final_mse_mean"],
+            mse_ratio=_ratio(ra["final_mse_mean"], rb["final_mse_mean"]),
+            norm_a=norm_a, norm_b=norm_b, norm_ratio=_ratio(norm_a, norm_b),
+            time_ratio=_ratio(ra["da_step_seconds"], rb["da_step_seconds"]),
+        ))
+    rows.extend(dict(zip(RECORD_KEY, key), only="b", mse_b=rb["final_mse_mean"]) for key, rb in index_b.items())
+    return rows
+
+
+def _fmt(x: float | None, spec: str = ".3e") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def format_comparison(a: dict[str, Any], b: dict[str, Any], rows: list[dict[str, Any]] | None = None) -> str:
+    """A plain-text table of :func:`compare` (ratios B / A), with a note when the two files differ in setup."""
+    rows = compare(a, b) if rows is None else rows
+    notes = []
+    for name in ("benchmark", "preset"):
+        if a[name] != b[name]:
+            notes.append(f"note: {name} differs: A={a[name]!r}, B={b[name]!r}")
+    if a["dataset"].get("fingerprint") != b["dataset"].get("fingerprint"):
+        notes.append("note: the two files were computed on different datasets (fingerprints differ)")
+    head = (f"{'experiment':<14}{'model':<9}{'filter':<8}{'initial':<12}{'noise':>6}{'r':>4}{'T':>3}{'n':>4}"
+            f"{'MSE A':>11}{'MSE B':>11}{'B/A':>8}{'|F| B/A':>9}{'time B/A':>10}")
+    lines = notes + [head, "-" * len(head)]
+    for row in rows:
+        n = "-" if row["n_members"] is None else str(row["n_members"])
+        prefix = (f"{row['experiment']:<14}{row['model']:<9}{row['filter']:<8}{row['initial']:<12}"
+                  f"{row['noise']:>6g}{row['r']:>4}{row['T']:>3}{n:>4}")
+        if row["only"]:
+            mse = row.get("mse_a") if row["only"] == "a" else row.get("mse_b")
+            cols = (_fmt(mse), "-") if row["only"] == "a" else ("-", _fmt(mse))
+            lines.append(f"{prefix}{cols[0]:>11}{cols[1]:>11}   only in {row['only'].upper()}")
+        else:
+            lines.append(f"{prefix}{_fmt(row['mse_a']):>11}{_fmt(row['mse_b']):>11}{_fmt(row['mse_ratio'], '.3g'):>8}"
+                         f"{_fmt(row['norm_ratio'], '.3g'):>9}{_fmt(row['time_ratio'], '.3g'):>10}")
+    return "\n".join(lines)
+
+
+__all__ = [
+    "RECORD_KEY",
+    "SCHEMA",
+    "SCHEMA_VERSION",
+    "ResultsError",
+    "compare",
+    "format_comparison",
+    "load_results",
+    "make_record",
+    "merge",
+    "new_results",
+    "record_key",
+    "run_key",
+    "save_results",
+    "select",
+    "validate",
+    "validate_record",
+]

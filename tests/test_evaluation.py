@@ -1,0 +1,315 @@
+"""Evaluation: the batched assimilation runs, the results schema, reproduce end to end (Burgers `small`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+import dks_gym  # noqa: F401
+from dks_gym.dataset import Dataset
+from dks_gym.evaluation.assimilation import AssimilationConfig, run_assimilation
+from dks_gym.evaluation.commands import compare_command, reproduce_command
+from dks_gym.evaluation.results import (
+    ResultsError,
+    compare,
+    load_results,
+    make_record,
+    merge,
+    new_results,
+    save_results,
+    validate,
+)
+from dks_gym.models.training import train_model
+from dks_gym.wrappers import LatentFilter, approximate_initial_latent
+
+# Short trainings: enough for the models to leave their initialization, small enough for a test (~25 s).
+TRAIN_STEPS = {"koopman": 150, "mlp": 60, "xlstm": 40}
+
+
+@pytest.fixture(scope="module")
+def home(burgers_small: Path, tmp_path_factory: pytest.TempPathFactory):
+    """A data home of this module only (its checkpoints never meet other modules'), with the small data."""
+    root = tmp_path_factory.mktemp("eval_home")
+    (root / "data").mkdir()
+    shutil.copy(burgers_small, root / "data" / "burgers-small.h5")
+    previous = os.environ.get("DKS_GYM_HOME")
+    os.environ["DKS_GYM_HOME"] = str(root)
+    yield root
+    if previous is None:
+        os.environ.pop("DKS_GYM_HOME")
+    else:
+        os.environ["DKS_GYM_HOME"] = previous
+
+
+@pytest.fixture(scope="module")
+def dataset(home: Path) -> Dataset:
+    return Dataset(home / "data" / "burgers-small.h5")
+
+
+@pytest.fixture(scope="module")
+def models(dataset: Dataset) -> dict:
+    """Lite r = 32 models briefly trained into the module's data home (the checkpoints reproduce reuses)."""
+    out = {}
+    for kind in ("koopman", "mlp", "xlstm", "pdmd"):
+        out[kind] = train_model("burgers", kind, 32, "lite", 1, dataset=dataset, steps=TRAIN_STEPS.get(kind),
+                                progress=False).model.eval()
+    return out
+
+
+def _single_wrapper_run(model, filt: str, initial: str, trajectory: int) -> tuple[np.ndarray, np.ndarray]:
+    """The same run through the LatentFilter wrapper, one trajectory: per-frame MSE and ||F_k|| per step."""
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model,
+                       filter="none" if filt == "forward" else filt, initial=initial)
+    _, info = env.reset(options={"trajectory": trajectory, "noise_seed": 0})
+    mse, norms, done = [info["mse"]], [], False
+    while not done:
+        _, _, terminated, truncated, info = env.step(None)
+        mse.append(info["mse"])
+        norms.append(info["forecast_norm"])
+        done = terminated or truncated
+    env.close()
+    return np.array(mse), np.array(norms)
+
+
+@pytest.mark.parametrize("kind, filt, initial", [("koopman", "ekf", "approximate"), ("mlp", "ekf", "exact"),
+                                                 ("xlstm", "forward", "approximate"), ("pdmd", "ekf", "approximate")])
+def test_batched_run_equals_wrappers_one_trajectory_at_a_time(models, dataset, kind, filt, initial) -> None:
+    result = run_assimilation(models[kind], dataset, filter=filt, initial=initial)
+    n_test = dataset.n_trajectories("test")
+    assert result.step_mse.shape == (n_test, dataset.n_frames)
+    for i in range(n_test):
+        mse, norms = _single_wrapper_run(models[kind], filt, initial, i)
+        # float32 decoding: a relative 2e-4, or 1e-7 absolute (field variance ~0.5) for the tiny pDMD errors
+        np.testing.assert_allclose(result.step_mse[i], mse, rtol=2e-4, atol=1e-7)
+        np.testing.assert_allclose(result.forecast_norm[:, i], norms, rtol=1e-4)
+    assert result.final_mse_mean == pytest.approx(np.mean(result.step_mse[:, -1]))
+    assert result.final_mse_std == pytest.approx(np.std(result.step_mse[:, -1], ddof=1))
+
+
+def test_forward_run_is_the_decoded_rollout_scored_against_the_data(models, dataset) -> None:
+    """Eq. 18 recomputed from the model's rollout and the stored fields, and ||F_k|| from the Jacobians."""
+    model = models["mlp"]
+    result = run_assimilation(model, dataset, filter="forward")
+    mu = torch.as_tensor(dataset.params("test"), dtype=torch.float32)
+    z0 = approximate_initial_latent(model, dataset)[None].expand(len(mu), -1)
+    n_steps = dataset.n_frames - 1
+    with torch.no_grad():
+        path = model.rollout(z0, mu, n_steps)  # (B, n_t, r)
+        final = model.decode(path[:, -1], mu).numpy()
+    truth = np.asarray(dataset.fields("test")[:, -1], dtype=np.float64)
+    expected = ((final - truth) ** 2).mean(axis=(1, 2))
+    np.testing.assert_allclose(result.final_mse, expected, rtol=1e-4)
+    norms = torch.stack([torch.linalg.matrix_norm(model.forecast_jacobian(path[:, k], mu), ord=2)
+                         for k in range(n_steps)]).amax(0).detach().numpy()
+    np.testing.assert_allclose(result.max_forecast_norm, norms, rtol=1e-4)
+    koopman = run_assimilation(models["koopman"], dataset, filter="forward")
+    with torch.no_grad():
+        k_norm = torch.linalg.matrix_norm(models["koopman"].koopman_operator(mu), ord=2).detach().numpy()
+    np.testing.assert_allclose(koopman.max_forecast_norm, k_norm, rtol=1e-5)
+    assert np.all(k_norm <= 1 + 1e-5)  # ||K(mu; dt)|| <= 1 by construction (paper Cor. 1)
+
+
+def test_enkf_run_is_reproducible_from_its_seed(models, dataset) -> None:
+    model = models["koopman"]
+    a = run_assimilation(model, dataset, filter="enkf", n_members=8, filter_seed=3)
+    b = run_assimilation(model, dataset, filter="enkf", n_members=8, filter_seed=3)
+    c = run_assimilation(model, dataset, filter="enkf", n_members=8, filter_seed=4)
+    np.testing.assert_array_equal(a.step_mse, b.step_mse)
+    assert not np.array_equal(a.step_mse, c.step_mse)
+    assert a.forecast_norm is None and a.max_forecast_norm is None
+
+
+def test_bad_configuration_is_refused(models, dataset) -> None:
+    with pytest.raises(ValueError, match="unknown filter"):
+        AssimilationConfig(filter="ukf")
+    with pytest.raises(ValueError, match="noise_level"):
+        AssimilationConfig(noise_level=0.0)
+    with pytest.raises(ValueError, match="trajectories"):
+        run_assimilation(models["koopman"], dataset, trajectories=[0, 99])
+    from dks_gym.models import build_model
+
+    with pytest.raises(ValueError, match="cylinder"):
+        run_assimilation(build_model("cylinder", "koopman", r=8, preset="lite"), dataset)
+
+
+# Results schema ----------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small_doc(models, dataset) -> dict:
+    from dks_gym.models.checkpoint import dataset_identity
+
+    records = []
+    for kind in ("koopman", "mlp"):
+        for filt in ("forward", "ekf", "enkf"):
+            res = run_assimilation(models[kind], dataset, filter=filt, n_members=8)
+            records.append(make_record(res, experiment="main"))
+    return new_results("burgers", "lite", dataset_identity(dataset), {"n_sensors": 16}, records)
+
+
+def test_results_round_trip_and_validation(small_doc, tmp_path: Path) -> None:
+    path = save_results(small_doc, tmp_path / "results.json")
+    assert load_results(path) == json.loads(json.dumps(small_doc))
+    rec = small_doc["records"][0]
+    assert rec["final_mse_mean"] == pytest.approx(np.mean(rec["per_trajectory_final_mse"]))
+    assert rec["per_step_mse_mean"][-1] == pytest.approx(rec["final_mse_mean"])
+    bad = json.loads(json.dumps(small_doc))
+    del bad["records"][1]["final_mse_mean"]
+    with pytest.raises(ResultsError, match=r"records\[1\] lacks final_mse_mean"):
+        validate(bad)
+    bad = json.loads(json.dumps(small_doc))
+    bad["records"][0]["per_trajectory_final_mse"].append(1.0)
+    with pytest.raises(ResultsError, match="batch"):
+        validate(bad)
+    bad = json.loads(json.dumps(small_doc))
+    bad["records"].append(bad["records"][0])
+    with pytest.raises(ResultsError, match="repeats"):
+        validate(bad)
+    bad = dict(small_doc, schema_version=99)
+    with pytest.raises(ResultsError, match="schema_version"):
+        validate(bad)
+    (tmp_path / "broken.json").write_text("{not json")
+    with pytest.raises(ResultsError, match="not valid JSON"):
+        load_results(tmp_path / "broken.json")
+
+
+def test_nonfinite_numbers_are_stored_as_null(small_doc) -> None:
+    from dks_gym.evaluation.results import _numbers
+
+    assert _numbers([1.0, math.nan, math.inf]) == [1.0, None, None]
+    doc = json.loads(json.dumps(small_doc))
+    doc["records"][0]["final_mse_std"] = None
+    validate(doc)
+    doc["records"][0]["final_mse_std"] = math.nan
+    with pytest.raises(ResultsError, match="final_mse_std"):
+        validate(doc)
+
+
+def test_compare_gives_ratios_of_matching_records(small_doc) -> None:
+    other = json.loads(json.dumps(small_doc))
+    other["records"][0]["final_mse_mean"] *= 2.0
+    other["records"][1]["da_step_seconds"] *= 0.5
+    dropped = other["records"].pop()
+    rows = compare(small_doc, other)
+    paired = [r for r in rows if r["only"] is None]
+    assert len(paired) == len(small_doc["records"]) - 1
+    assert paired[0]["mse_ratio"] == pytest.approx(2.0)
+    assert paired[1]["time_ratio"] == pytest.approx(0.5)
+    assert all(r["mse_ratio"] == pytest.approx(1.0) for r in paired[1:])
+    only = [r for r in rows if r["only"] == "a"]
+    assert len(only) == 1 and only[0]["filter"] == dropped["filter"] and only[0]["model"] == dropped["model"]
+
+
+def test_merge_keeps_the_experiments_not_rerun(small_doc) -> None:
+    other = json.loads(json.dumps(small_doc))
+    for rec in other["records"]:
+        rec["experiment"] = "enkf"
+    merged = merge(small_doc, other)
+    assert {r["experiment"] for r in merged["records"]} == {"main", "enkf"}
+    foreign = dict(other, dataset=dict(other["dataset"], fingerprint="0" * 64))
+    with pytest.raises(ResultsError, match="different datasets"):
+        merge(small_doc, foreign)
+
+
+# Figures ------------------------------------------------------------------------------------------------------
+def test_bar_values_are_normalized_by_the_mlp_forward_run() -> None:
+    from dks_gym.evaluation.figures import normalized_values
+
+    base = {"model": "mlp", "final_mse_mean": 2.0, "final_mse_std": 1.0}
+    recs = [{"model": "xlstm", "final_mse_mean": 6.0, "final_mse_std": 0.5},
+            {"model": "koopman", "final_mse_mean": 1.0, "final_mse_std": None}, base]
+    assert normalized_values(recs, base) == [("koopman", 0.5, 0.0), ("mlp", 1.0, 0.5), ("xlstm", 3.0, 0.25)]
+    with pytest.raises(ValueError, match="baseline"):
+        normalized_values(recs, dict(base, final_mse_mean=None))
+
+
+@pytest.mark.parametrize("name", ["cylinder", "sphere"])
+def test_reconstruction_figure_of_2d_and_3d_fields(name: str, tmp_path: Path) -> None:
+    from dks_gym.benchmarks import get_benchmark
+    from dks_gym.evaluation.figures import _field_slice, reconstruction_figure
+
+    bench = get_benchmark(name)
+    mesh = np.meshgrid(*bench.coords(), indexing="ij")
+    truth = np.stack([np.sin(mesh[0]) * np.cos(mesh[1]) + c for c in range(len(bench.channels))])
+    np.testing.assert_array_equal(_field_slice(truth[1]), truth[1][..., 32] if bench.ndim == 3 else truth[1])
+    path = reconstruction_figure({"koopman": truth + 0.1, "mlp": truth - 0.1}, truth, bench.coords(),
+                                 tmp_path / "r.png", channel=1, fluid_mask=bench.fluid_mask(), title=name)
+    assert path.stat().st_size > 10_000
+
+
+# Reproduce end to end ------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def reproduced(models, home: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, float]:
+    out = tmp_path_factory.mktemp("reproduce")
+    start = time.perf_counter()
+    result = CliRunner().invoke(reproduce_command, ["burgers", "--preset", "lite", "--data-preset", "small",
+                                                    "--only", "main", "--out", str(out), "--no-train"])
+    assert result.exit_code == 0, result.output + repr(result.exception)
+    return out, time.perf_counter() - start
+
+
+def test_reproduce_main_writes_results_tables_and_figures(reproduced) -> None:
+    out, seconds = reproduced
+    assert seconds < 180
+    doc = load_results(out / "results.json")
+    assert doc["benchmark"] == "burgers" and doc["config"]["experiments"] == ["main"]
+    runs = {(r["model"], r["filter"], r["initial"]) for r in doc["records"]}
+    assert runs == {(m, f, i) for m in ("koopman", "pdmd", "mlp", "xlstm") for f in ("forward", "ekf")
+                    for i in ("approximate", "exact")}
+    assert all(r["batch"] == 3 and len(r["per_trajectory_step_mse"]) == 3 for r in doc["records"])
+    tables = (out / "tables.md").read_text()
+    assert "## Main comparison, approximate initial condition" in tables
+    assert "3.17e-03" in tables  # the paper's Koopman rollout beside ours
+    for name in ("main_approximate", "main_exact", "temporal_approximate", "reconstruction"):
+        assert (out / "figures" / f"{name}.png").stat().st_size > 10_000
+
+
+def test_reproduce_reruns_merge_and_compare_prints_ratios(reproduced, models) -> None:
+    out, _ = reproduced
+    result = CliRunner().invoke(reproduce_command, ["burgers", "--data-preset", "small", "--only", "operator_norm",
+                                                    "--out", str(out), "--no-train"])
+    assert result.exit_code == 0, result.output
+    doc = load_results(out / "results.json")
+    assert {r["experiment"] for r in doc["records"]} == {"main", "operator_norm"}
+    # The same run asked for by two experiments gives the same record.
+    a = next(r for r in doc["records"] if r["experiment"] == "main" and r["model"] == "mlp" and r["filter"] == "ekf"
+             and r["initial"] == "approximate")
+    b = next(r for r in doc["records"] if r["experiment"] == "operator_norm" and r["model"] == "mlp"
+             and r["filter"] == "ekf")
+    assert a["per_trajectory_final_mse"] == pytest.approx(b["per_trajectory_final_mse"], rel=1e-5)
+    assert "Table IX" in (out / "tables.md").read_text()
+    result = CliRunner().invoke(reproduce_command, ["burgers", "--data-preset", "small", "--only", "main",
+                                                    "--only", "operator_norm", "--out", str(out), "--no-train",
+                                                    "--skip-done"])
+    assert result.exit_code == 0 and "skipping experiments already in" in result.output
+    assert load_results(out / "results.json")["records"] == doc["records"]
+    result = CliRunner().invoke(compare_command, [str(out / "results.json"), str(out / "results.json"),
+                                                  "--experiment", "main"])
+    assert result.exit_code == 0 and result.output.count(" 1 ") >= 16
+
+
+def test_koopman_ekf_beats_its_forward_run_after_short_training(reproduced) -> None:
+    """Paper Section IV: assimilation lowers the error of the linear Koopman model (here 150 lite steps)."""
+    doc = load_results(reproduced[0] / "results.json")
+
+    def mse(filt: str, initial: str) -> float:
+        return next(r["final_mse_mean"] for r in doc["records"] if r["experiment"] == "main"
+                    and r["model"] == "koopman" and r["filter"] == filt and r["initial"] == initial)
+
+    for initial in ("approximate", "exact"):
+        assert mse("ekf", initial) < mse("forward", initial)
+
+
+def test_missing_model_without_training_fails_clearly(home: Path, tmp_path: Path, models) -> None:
+    result = CliRunner().invoke(reproduce_command, ["burgers", "--data-preset", "small", "--only", "latent",
+                                                    "--out", str(tmp_path), "--no-train"])
+    assert result.exit_code != 0
+    assert "dks-gym train" in result.output and "r=16" in result.output
