@@ -1,0 +1,371 @@
+"""The placement evaluation harness: every policy on the test split, identical noise, one ranked table.
+
+:func:`evaluate_placement` (and ``dks-gym evaluate-placement``) fits each policy on the training split,
+then filters every test trajectory with its layouts as one batch (static policies: one layout per episode,
+:func:`~agents.scoring.run_layouts`; adaptive ones: a layout per step, :func:`~agents.scoring.run_adaptive`).
+The measurement noise depends only on (noise seed, split, trajectory, frame, cell), so every policy is
+judged on the same noise realization, and a cell read by two policies reads the same value.
+
+Outputs in ``out``:
+
+* ``placement.json``: a results document of the ``dks-gym-results`` schema (:mod:`dks_gym.evaluation.results`),
+  one record per policy with ``experiment = "placement/<policy>"``, plus the placement fields ``policy``,
+  ``adaptive``, ``sensors`` (static layout) or ``sensor_counts`` (adaptive: [cell, reads]),
+  ``time_mean_mse_mean``/``_std``, ``per_trajectory_time_mean_mse``, ``fit_seconds`` (fitting here),
+  ``offline_seconds`` (the offline cost: fitting plus the training recorded in a loaded agent checkpoint),
+  ``decision_seconds`` (wall time per decision: per episode for static layouts, per step and trajectory for
+  adaptive ones) and ``policy_config``. A ``placement/forward`` record (no assimilation) is the reference.
+* ``placement.md``: the ranked table (by time-averaged MSE; frames 1..n_t-1, frame 0 being the same
+  initial estimate for all) with final-time and time-averaged MSE mean and std across trajectories, the
+  per-trajectory (paired) ratio to the paper layout, and the costs.
+* ``placement_layouts.png``: each policy's layout over a snapshot of the observed field.
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import time
+from dataclasses import asdict, dataclass, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from dks_gym.evaluation.assimilation import AssimilationResult
+from dks_gym.evaluation.results import make_record, new_results, save_results
+
+from .adaptive import PPOAdaptive
+from .baselines import GreedyLayout, PaperLayout, QRLayout, RandomLayout
+from .policies import AdaptivePolicy, PlacementPolicy, PlacementTask, StaticPolicy
+from .scoring import run_adaptive, run_layouts
+from .sequential import SequentialLayout
+
+POLICIES = ("paper", "random", "qr", "greedy", "greedy-trace", "sequential", "ppo")
+
+
+def make_policies(names: Sequence[str] | str, *, random_seeds: int = 5, greedy_candidates: int = 32,
+                  greedy_trajectories: int | None = None, sequential: str | Path | None = None,
+                  ppo: str | Path | None = None, agent_timesteps: int | None = None,
+                  agent_out: str | Path | None = None) -> list[PlacementPolicy]:
+    """Policies by name ("paper", "random" (``random_seeds`` seeded layouts), "qr", "greedy" (filter error),
+    "greedy-trace", "sequential", "ppo"). Learned ones load ``sequential`` / ``ppo`` checkpoints when given,
+    else train (``agent_timesteps`` steps, default each trainer's, checkpoints to ``agent_out``)."""
+    if isinstance(names, str):
+        names = [n.strip() for n in names.split(",") if n.strip()]
+    unknown = [n for n in names if n not in POLICIES]
+    if unknown or not names:
+        raise ValueError(f"unknown policies {unknown}; choose from {', '.join(POLICIES)} (comma-separated)")
+    steps = {} if agent_timesteps is None else {"timesteps": int(agent_timesteps)}
+    out: list[PlacementPolicy] = []
+    for name in dict.fromkeys(names):
+        if name == "paper":
+            out.append(PaperLayout())
+        elif name == "random":
+            out.extend(RandomLayout(seed) for seed in range(random_seeds))
+        elif name == "qr":
+            out.append(QRLayout())
+        elif name in ("greedy", "greedy-trace"):
+            out.append(GreedyLayout("error" if name == "greedy" else "trace", n_candidates=greedy_candidates,
+                                    n_trajectories=greedy_trajectories))
+        elif name == "sequential":
+            out.append(SequentialLayout(sequential, out=agent_out, **steps))
+        else:
+            out.append(PPOAdaptive(ppo, out=agent_out, **steps))
+    return out
+
+
+@dataclass
+class PolicyResult:
+    """One policy's test-split run: the batched filter result and the policy's costs and layouts."""
+
+    policy: PlacementPolicy
+    result: AssimilationResult
+    layouts: np.ndarray  # (B, m) static; (B, n_t - 1, m) adaptive
+    decision_seconds: float
+
+    @property
+    def name(self) -> str:
+        return self.policy.name
+
+    @property
+    def time_mean_mse(self) -> np.ndarray:
+        """(B,) MSE averaged over the assimilated frames 1..n_t-1."""
+        return self.result.step_mse[:, 1:].mean(axis=1)
+
+
+def episodes(task: PlacementTask, trajectories: np.ndarray | None = None,
+             noise_seeds: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The evaluation episodes: every trajectory (default: the whole split) under every noise seed (default:
+    ``task.config.noise_seed``), as (trajectory, seed) arrays ordered seed-major."""
+    n = task.dataset.n_trajectories(task.config.split)
+    index = np.arange(n) if trajectories is None else np.asarray(trajectories, dtype=np.int64)
+    seeds = [task.config.noise_seed] if noise_seeds is None else [int(s) for s in noise_seeds]
+    return np.tile(index, len(seeds)), np.repeat(np.asarray(seeds, dtype=np.int64), len(index))
+
+
+def evaluate_policy(task: PlacementTask, policy: PlacementPolicy, trajectories: np.ndarray | None = None,
+                    noise_seeds: Sequence[int] | None = None) -> PolicyResult:
+    """Fit ``policy`` on the training split (unless fitted) and run it on the test episodes (:func:`episodes`)."""
+    ds, config = task.dataset, task.config
+    index, seeds = episodes(task, trajectories, noise_seeds)
+    if policy.task is None:
+        policy.fit(task)
+    if isinstance(policy, AdaptivePolicy):
+        result = run_adaptive(task.model, ds, policy.decide, policy.candidates, index, config, noise_seeds=seeds)
+        per_decision = float(result.extras["decision_seconds"].mean() / len(index))
+        return PolicyResult(policy, result, result.extras["layouts"], per_decision)
+    if not isinstance(policy, StaticPolicy):
+        raise TypeError(f"{type(policy).__name__} is neither a StaticPolicy nor an AdaptivePolicy")
+    tic = time.perf_counter()
+    layouts = policy.episode_layouts(ds.params(config.split)[index])
+    per_decision = (time.perf_counter() - tic) / len(index)
+    result = run_layouts(task.model, ds, layouts, index, config, noise_seeds=seeds)
+    return PolicyResult(policy, result, layouts, per_decision)
+
+
+def _record(pr: PolicyResult, task: PlacementTask) -> dict[str, Any]:
+    rec = make_record(pr.result, experiment=f"placement/{pr.name}", keep_curves=True)
+    tm = pr.time_mean_mse
+    rec.update(
+        policy=pr.name, adaptive=pr.policy.adaptive,
+        time_mean_mse_mean=float(tm.mean()), time_mean_mse_std=float(tm.std(ddof=1)) if len(tm) > 1 else None,
+        per_trajectory_time_mean_mse=[float(v) for v in tm],
+        fit_seconds=None if not math.isfinite(pr.policy.fit_seconds) else float(pr.policy.fit_seconds),
+        offline_seconds=None if not math.isfinite(pr.policy.offline_seconds) else float(pr.policy.offline_seconds),
+        decision_seconds=float(pr.decision_seconds), policy_config=pr.policy.describe(),
+        noise_seeds=[int(s) for s in pr.result.extras["noise_seeds"]],
+    )
+    if pr.policy.adaptive:
+        cells, counts = np.unique(pr.layouts, return_counts=True)
+        rec["sensors"] = None
+        rec["sensor_counts"] = [[int(c), int(n)] for c, n in zip(cells, counts)]
+        rec["candidates"] = [int(c) for c in pr.policy.candidates]
+    else:
+        rec["sensors"] = [int(c) for c in pr.layouts[0]]
+    return rec
+
+
+def placement_document(task: PlacementTask, results: Sequence[PolicyResult], forward: AssimilationResult | None,
+                       *, model_preset: str, wall_time: float) -> dict[str, Any]:
+    """The results document (``dks-gym-results`` schema) of one harness run."""
+    import torch
+
+    from dks_gym import __version__
+    from dks_gym.models.checkpoint import dataset_identity
+
+    ds = task.dataset
+    records = [_record(pr, task) for pr in results]
+    if forward is not None:
+        rec = make_record(forward, experiment="placement/forward", keep_curves=True)
+        tm = forward.step_mse[:, 1:].mean(axis=1)
+        rec.update(policy="forward", adaptive=False, sensors=None, time_mean_mse_mean=float(tm.mean()),
+                   noise_seeds=[int(s) for s in forward.extras["noise_seeds"]],
+                   time_mean_mse_std=float(tm.std(ddof=1)) if len(tm) > 1 else None,
+                   per_trajectory_time_mean_mse=[float(v) for v in tm], fit_seconds=None, offline_seconds=None,
+                   decision_seconds=None,
+                   policy_config={"name": "forward", "note": "no assimilation: the open-loop model, sensors unused"})
+        records.append(rec)
+    seeds = sorted({int(s) for s in results[0].result.extras["noise_seeds"]})
+    config = dict(asdict(task.config), n_test=ds.n_trajectories(task.config.split), n_frames=ds.n_frames,
+                  noise_seeds=seeds, n_episodes=int(results[0].result.batch),
+                  observed_channel=ds.observed_channel, scored_channels=list(ds.scored_channels),
+                  model=task.model.kind, r=int(task.model.r), model_preset=model_preset, device=str(task.device),
+                  policies=[pr.name for pr in results], ranking="time-averaged MSE over frames 1..n_t-1",
+                  created=datetime.now(timezone.utc).isoformat(timespec="seconds"), wall_time_s=wall_time,
+                  dks_gym_version=__version__, torch_version=torch.__version__, python=platform.python_version())
+    return new_results(ds.benchmark.name, model_preset, dataset_identity(ds), config, records,
+                       [{"model": task.model.kind, "r": int(task.model.r), "preset": model_preset}])
+
+
+# Table -------------------------------------------------------------------------------------------------
+def _sci(x: float | None) -> str:
+    return "-" if x is None or not math.isfinite(x) else f"{x:.2e}"
+
+
+def _cost(x: float | None, scale: float = 1.0, unit: str = "") -> str:
+    if x is None or not math.isfinite(x):
+        return "-"
+    v = x * scale
+    return (f"{v:.3g}" if v >= 0.01 else f"{v:.1e}") + unit
+
+
+def ranked_table(doc: dict[str, Any]) -> str:
+    """Markdown: policies ranked by time-averaged MSE, with final MSE, paired ratio to the paper layout, costs."""
+    recs = [r for r in doc["records"] if r["experiment"].startswith("placement/")]
+    policies = sorted((r for r in recs if r["policy"] != "forward"), key=lambda r: r["time_mean_mse_mean"])
+    paper = next((r for r in recs if r["policy"] == "paper"), None)
+    forward = next((r for r in recs if r["policy"] == "forward"), None)
+    head = ("| rank | policy | time-avg MSE (mean ± std) | final MSE (mean ± std) | time-avg / paper, paired "
+            "(mean ± std) | better than paper | offline cost | per decision |")
+    lines = [head, "|" + "---|" * 8]
+
+    def ratio_cells(rec: dict[str, Any]) -> tuple[str, str]:
+        if paper is None:
+            return "-", "-"
+        a = np.asarray(rec["per_trajectory_time_mean_mse"], dtype=float)
+        b = np.asarray(paper["per_trajectory_time_mean_mse"], dtype=float)
+        q = a / b
+        wins = int(np.sum(a < b))
+        return f"{q.mean():.3f} ± {q.std(ddof=1) if len(q) > 1 else 0:.3f}", f"{wins}/{len(q)}"
+
+    for i, rec in enumerate(policies, 1):
+        kind = " (adaptive)" if rec.get("adaptive") else ""
+        ratio, wins = ratio_cells(rec)
+        lines.append(
+            f"| {i} | {rec['policy']}{kind} | {_sci(rec['time_mean_mse_mean'])} ± {_sci(rec['time_mean_mse_std'])} | "
+            f"{_sci(rec['final_mse_mean'])} ± {_sci(rec['final_mse_std'])} | {ratio} | {wins} | "
+            f"{_cost(rec.get('offline_seconds'), 1, ' s')} | {_cost(rec.get('decision_seconds'), 1e3, ' ms')} |"
+        )
+    if forward is not None:
+        ratio, wins = ratio_cells(forward)
+        lines.append(f"| - | forward run (no sensors) | {_sci(forward['time_mean_mse_mean'])} ± "
+                     f"{_sci(forward['time_mean_mse_std'])} | {_sci(forward['final_mse_mean'])} ± "
+                     f"{_sci(forward['final_mse_std'])} | {ratio} | {wins} | - | - |")
+    randoms = [r["time_mean_mse_mean"] for r in recs if r["policy"].startswith("random-")]
+    cfg = doc["config"]
+    notes = [
+        "",
+        f"{doc['benchmark']}, {cfg['model']} ({cfg['model_preset']}, r={cfg['r']}) with {cfg['filter']}, "
+        f"m={cfg['n_sensors']}, noise level {cfg['noise_level']:g}; {cfg['n_episodes']} test episodes = "
+        f"{cfg['n_test']} trajectories x {len(cfg['noise_seeds'])} noise seed(s) {cfg['noise_seeds']}, "
+        f"{cfg['n_frames']} frames each. MSE in physical units over the scored channels; std = sample std "
+        "across episodes; paired ratio = per-episode time-averaged MSE divided by the paper layout's on the "
+        "same trajectory and noise. Offline cost = fitting on the "
+        "training split (incl. RL training, also when loaded from a checkpoint); per decision = one layout "
+        "(static: per episode; adaptive: per step and trajectory).",
+    ]
+    if len(randoms) > 1:
+        notes.append(f"Random layouts ({len(randoms)} seeds): time-averaged MSE {np.mean(randoms):.2e} ± "
+                     f"{np.std(randoms, ddof=1):.2e} (mean ± std over seeds).")
+    return "\n".join(lines + notes) + "\n"
+
+
+# Figure ------------------------------------------------------------------------------------------------
+def layout_figure(task: PlacementTask, results: Sequence[PolicyResult], path: str | Path,
+                  trajectory: int | None = None) -> Path:
+    """Each policy's layout over the observed field of one test trajectory (default: median parameter) at the
+    final frame. 1D: the field on top and one strip of sensor positions per policy; 2D/3D: one panel per
+    policy (3D: the mid-plane z slice, off-plane sensors as +). Adaptive policies show the cells read at
+    the final step."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    from dks_gym.envs.render import draw_field
+
+    ds, bench = task.dataset, task.benchmark
+    split = task.config.split
+    index = results[0].result.trajectories
+    params = ds.params(split)[index]
+    if trajectory is None:
+        pos = int(np.argsort(params)[len(params) // 2])
+    else:
+        pos = int(np.flatnonzero(index == trajectory)[0])
+    traj = int(index[pos])
+    frame = ds.n_frames - 1
+    field_ = ds.frame(split, traj, frame)[bench.observed_index]
+    title = f"{bench.name}: {bench.observed_channel} at t={ds.time[frame]:.3g}, {ds.param_name}={params[pos]:.4g}"
+
+    def cells_of(pr: PolicyResult) -> np.ndarray:
+        return pr.layouts[pos, -1] if pr.policy.adaptive else pr.layouts[pos]
+
+    if bench.ndim == 1:
+        x = ds.coords[0]
+        fig = Figure(figsize=(8, 2.2 + 0.28 * len(results)), dpi=120)
+        top, strip = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [2.2, 0.28 * len(results) + 0.3]})
+        top.plot(x, field_, lw=1.2, color="0.2")
+        top.set_ylabel(bench.observed_channel)
+        top.set_title(title, fontsize=9)
+        for i, pr in enumerate(results):
+            cells = cells_of(pr)
+            strip.plot(x[cells], np.full(len(cells), i), "|" if not pr.policy.adaptive else "x", ms=9, mew=1.6,
+                       color=f"C{i % 10}")
+        strip.set_yticks(range(len(results)), [pr.name + (" (step)" if pr.policy.adaptive else "") for pr in results],
+                         fontsize=7)
+        strip.set_ylim(len(results) - 0.5, -0.5)
+        strip.set_xlabel("x")
+        strip.grid(axis="x", alpha=0.3)
+    else:
+        ncols = min(4, len(results))
+        nrows = math.ceil(len(results) / ncols)
+        fig = Figure(figsize=(4.2 * ncols, 3.2 * nrows), dpi=100)
+        axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
+        vmax = float(np.abs(field_).max())
+        for ax, pr in zip(axes, results):
+            draw_field(ax, bench, ds.coords, field_, cells_of(pr), bench.fluid_mask(ds.cell_type),
+                       pr.name + (" (last step)" if pr.policy.adaptive else ""), vmin=-vmax, vmax=vmax)
+        for ax in axes[len(results):]:
+            ax.set_visible(False)
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+# Entry point -------------------------------------------------------------------------------------------
+def evaluate_placement(
+    benchmark: str,
+    policies: Sequence[str] | str = ("paper", "random", "qr", "greedy"),
+    *,
+    model: str = "koopman",
+    filter: str = "ekf",
+    model_preset: str = "lite",
+    data_preset: str = "paper",
+    n_sensors: int = 16,
+    noise_level: float = 0.2,
+    noise_seed: int = 0,
+    noise_seeds: int = 1,
+    random_seeds: int = 5,
+    greedy_candidates: int = 32,
+    greedy_trajectories: int | None = None,
+    sequential: str | Path | None = None,
+    ppo: str | Path | None = None,
+    agent_timesteps: int | None = None,
+    out: str | Path | None = None,
+    device: str = "cpu",
+    train_if_missing: bool = False,
+    task: PlacementTask | None = None,
+    log: Callable[[str], None] = print,
+) -> tuple[dict[str, Any], list[PolicyResult]]:
+    """Fit and run the named policies on BENCHMARK's test split; write JSON, table and figure to ``out``.
+
+    Returns the results document and the per-policy results. Episodes: every test trajectory under the
+    ``noise_seeds`` noise seeds ``noise_seed, noise_seed + 1, ...``. ``task`` replaces the dataset/model
+    lookup (its config is used as is, its noise seed being the first). Learned policies ("sequential",
+    "ppo") load the given checkpoints or train, saving their checkpoints and learning curves under
+    ``out/agents``.
+    """
+    start = time.perf_counter()
+    if task is None:
+        task = PlacementTask.load(benchmark, model, model_preset=model_preset, data_preset=data_preset, device=device,
+                                  train_if_missing=train_if_missing, filter=filter, n_sensors=n_sensors,
+                                  noise_level=noise_level, noise_seed=noise_seed)
+    out = Path(out) if out is not None else None
+    chosen = make_policies(policies, random_seeds=random_seeds, greedy_candidates=greedy_candidates,
+                           greedy_trajectories=greedy_trajectories, sequential=sequential, ppo=ppo,
+                           agent_timesteps=agent_timesteps, agent_out=None if out is None else out / "agents")
+    seeds = list(range(task.config.noise_seed, task.config.noise_seed + int(noise_seeds)))
+    results = []
+    for policy in chosen:
+        pr = evaluate_policy(task, policy, noise_seeds=seeds)
+        log(f"{policy.name:>14}: fit {policy.fit_seconds:8.2f} s, time-avg MSE {pr.time_mean_mse.mean():.3e}, "
+            f"final MSE {pr.result.final_mse_mean:.3e}")
+        results.append(pr)
+    index, episode_seeds = episodes(task, noise_seeds=seeds)
+    static = next((pr.layouts for pr in results if not pr.policy.adaptive), None)
+    forward = run_layouts(task.model, task.dataset, static if static is not None else
+                          np.repeat(task.benchmark.paper_layout(task.n_sensors)[None], len(index), 0),
+                          index, replace(task.config, filter="forward"), noise_seeds=episode_seeds)
+    doc = placement_document(task, results, forward, model_preset=model_preset,
+                             wall_time=time.perf_counter() - start)
+    if out is not None:
+        save_results(doc, out / "placement.json")
+        (out / "placement.md").write_text(ranked_table(doc))
+        layout_figure(task, results, out / "placement_layouts.png")
+        log(f"wrote {out / 'placement.json'}, {out / 'placement.md'}, {out / 'placement_layouts.png'}")
+    return doc, results

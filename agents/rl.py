@@ -1,0 +1,138 @@
+"""stable-baselines3 plumbing shared by the learned placement policies: learning curves, figures, checkpoints.
+
+A checkpoint is SB3's own ``NAME.zip`` (``PPO.save``) plus ``NAME.json`` with what the agent needs besides
+its weights (benchmark, candidates, sensor count, reward scale, model and dataset identity, training
+settings and the learning curve), so a loaded agent refuses a task it was not trained for.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _sb3():
+    try:
+        import stable_baselines3
+    except ImportError as exc:  # pragma: no cover - depends on the install
+        raise ImportError("the learned placement policies need stable-baselines3: "
+                          "pip install 'dks-gym[agents]'") from exc
+    return stable_baselines3
+
+
+def learning_curve_callback():
+    """A callback recording, after every rollout, the timesteps so far and the mean return of the episodes it ended."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class LearningCurve(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.timesteps: list[int] = []
+            self.mean_return: list[float] = []
+            self.episodes: list[int] = []
+            self.wall: list[float] = []
+            self._returns: list[float] = []
+            self._start = time.perf_counter()
+
+        def _on_step(self) -> bool:
+            for info in self.locals.get("infos", []):
+                if "episode" in info:
+                    self._returns.append(float(info["episode"]["r"]))
+            return True
+
+        def _on_rollout_end(self) -> None:
+            if self._returns:
+                self.timesteps.append(int(self.num_timesteps))
+                self.mean_return.append(float(np.mean(self._returns)))
+                self.episodes.append(len(self._returns))
+                self.wall.append(time.perf_counter() - self._start)
+                self._returns = []
+
+        def as_dict(self) -> dict[str, list]:
+            return {"timesteps": self.timesteps, "mean_return": self.mean_return, "episodes": self.episodes,
+                    "wall_s": self.wall}
+
+    return LearningCurve()
+
+
+def quiet_logger():
+    """An SB3 logger with no outputs (the default one creates an empty SB3-* folder in the temp dir per run)."""
+    from stable_baselines3.common.logger import Logger
+
+    return Logger(folder=None, output_formats=[])
+
+
+def save_learning_curve(curve: dict[str, list], path: str | Path, title: str,
+                        references: dict[str, float] | None = None) -> Path:
+    """Plot mean episode return against timesteps, with horizontal lines for reference layouts; write PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 3.6), dpi=110)
+    ax = fig.subplots()
+    ax.plot(curve["timesteps"], curve["mean_return"], "o-", ms=3, lw=1.2, label="PPO (mean return per rollout)")
+    for i, (name, value) in enumerate((references or {}).items()):
+        ax.axhline(value, ls="--", lw=1, color=f"C{i + 1}", label=name)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("mean episode return")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+def model_identity(task: Any) -> dict[str, Any]:
+    """What a learned policy was trained with: benchmark, latent model, dataset fingerprint, filter settings."""
+    from dataclasses import asdict
+
+    from dks_gym.models.checkpoint import dataset_identity
+
+    return {"benchmark": task.benchmark.name, "model": task.model.kind, "r": int(task.model.r),
+            "n_sensors": task.n_sensors, "dataset": dataset_identity(task.dataset), "config": asdict(task.config)}
+
+
+def save_agent(agent: Any, path: str | Path, metadata: dict[str, Any]) -> Path:
+    """Write ``path`` (.zip, SB3) and its ``.json`` metadata; returns the .zip path."""
+    path = Path(path).with_suffix(".zip")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    agent.save(path)
+    path.with_suffix(".json").write_text(json.dumps(metadata, indent=1, default=_plain) + "\n")
+    return path
+
+
+def load_agent(path: str | Path, task: Any, kind: str, device: str = "cpu") -> tuple[Any, dict[str, Any]]:
+    """Load a PPO agent and its metadata; raise if it was trained for another kind, benchmark or sensor count."""
+    sb3 = _sb3()
+    path = Path(path).with_suffix(".zip")
+    meta_path = path.with_suffix(".json")
+    if not path.exists() or not meta_path.exists():
+        raise FileNotFoundError(f"no agent checkpoint at {path} (with {meta_path.name}); train one first "
+                                f"(python -m agents.{kind} BENCHMARK --out DIR)")
+    meta = json.loads(meta_path.read_text())
+    if meta.get("kind") != kind:
+        raise ValueError(f"{path} holds a {meta.get('kind')!r} agent, not a {kind!r} one")
+    ident = meta.get("identity", {})
+    for key, want in (("benchmark", task.benchmark.name), ("n_sensors", task.n_sensors), ("r", int(task.model.r))):
+        if ident.get(key) != want:
+            raise ValueError(f"{path} was trained with {key}={ident.get(key)!r}, but the task has {key}={want!r}")
+    return sb3.PPO.load(path, device=device), meta
+
+
+def _plain(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.integer, np.floating)):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot store {type(obj).__name__} in agent metadata")

@@ -1,0 +1,310 @@
+"""Scoring sensor layouts with the filter in the loop: many layouts on many trajectories in one batched filter.
+
+* :func:`run_layouts`: the real filter (forward run, EKF or EnKF through
+  :class:`~dks_gym.wrappers.LatentAssimilator`) for B (layout, trajectory) pairs at once. Readings come from
+  :class:`~dks_gym.envs.SensingEnv` objects, one per trajectory, that read the union of all layouts' cells,
+  so each pair sees exactly the noise the harness and the environments give that cell (the noise depends on
+  (noise seed, split, trajectory, frame, cell) only). Used by the greedy baseline, the sequential MDP's
+  reward and the evaluation harness.
+* :func:`run_adaptive`: the same loop with a layout chosen every step by an adaptive policy
+  (``sensor_mode="select"`` environments).
+* :func:`covariance_traces`: the trace of the EKF analysis covariance (Eqs. 14, 15, 17) along the encoded
+  true trajectories, for many layouts at once. Linearizing at the truth rather than at the filter's own
+  estimate makes it independent of the noise realization and needs no decoding per layout: one decoder
+  Jacobian per frame serves every layout.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from dks_gym.dataset import Dataset
+from dks_gym.envs.noise import noise_sigma
+from dks_gym.envs.sensing import SensingEnv
+from dks_gym.evaluation.assimilation import AssimilationConfig, AssimilationResult
+from dks_gym.filters import GaussianState, LatentDynamics, ekf_forecast, ekf_update
+from dks_gym.wrappers.assimilator import FilterConfig, LatentAssimilator
+
+
+def model_device(model: Any) -> torch.device:
+    """The device a model's buffers live on (CPU for models without tensors)."""
+    buffer = getattr(model, "stats_mean", None)
+    if isinstance(buffer, torch.Tensor):
+        return buffer.device
+    first = next(iter(model.parameters()), None) if hasattr(model, "parameters") else None
+    return first.device if first is not None else torch.device("cpu")
+
+
+def filter_config(config: AssimilationConfig) -> FilterConfig:
+    """The wrappers' filter settings for an evaluation config ("forward" is the filter with the update off)."""
+    return FilterConfig(filter="none" if config.filter == "forward" else config.filter, initial=config.initial,
+                        P0=config.P0, Q=config.Q, n_members=config.n_members, on_divergence=config.on_divergence)
+
+
+def _check_pairs(dataset: Dataset, layouts: np.ndarray, trajectories: np.ndarray, split: str) -> None:
+    n_split = dataset.n_trajectories(split)
+    if layouts.ndim != 2 or layouts.shape[0] != trajectories.shape[0] or layouts.shape[0] == 0:
+        raise ValueError(f"layouts must be (B, m) with one row per trajectory, got {layouts.shape} for "
+                         f"{trajectories.shape[0]} trajectories")
+    if trajectories.min() < 0 or trajectories.max() >= n_split:
+        raise ValueError(f"trajectories must be indices in [0, {n_split}) of the {split!r} split")
+
+
+def _sensing_env(dataset: Dataset, split: str, config: AssimilationConfig, **kwargs: Any) -> SensingEnv:
+    return SensingEnv(dataset.benchmark, preset=dataset.preset or "paper", data_path=str(dataset.path), split=split,
+                      noise_level=config.noise_level, **kwargs)
+
+
+def _result(model: Any, config: AssimilationConfig, trajectories: np.ndarray, envs: list[SensingEnv],
+            assimilator: LatentAssimilator, step_mse: np.ndarray, estimate: torch.Tensor, wall: float,
+            extras: dict[str, Any]) -> AssimilationResult:
+    d = assimilator.filter.diagnostics
+    forecast_norm = None if config.filter == "enkf" else d.stacked("forecast_norm").cpu().double().numpy()
+    return AssimilationResult(
+        model=model.kind, r=int(model.r), config=config, trajectories=trajectories,
+        params=np.array([e.mu for e in envs], dtype=np.float64), step_mse=step_mse, forecast_norm=forecast_norm,
+        step_seconds=np.asarray(d.wall_time, dtype=np.float64),
+        divergence_resets=d.stacked("reset").sum(0).cpu().numpy().astype(np.int64),
+        final_estimate=estimate.cpu().numpy().astype(np.float32),
+        final_truth=assimilator.truth(envs).cpu().numpy().astype(np.float32), wall_time=wall, extras=extras,
+    )
+
+
+def _episode_seeds(config: AssimilationConfig, n: int, noise_seeds: Any) -> np.ndarray:
+    seeds = np.full(n, config.noise_seed, dtype=np.int64) if noise_seeds is None else \
+        np.asarray(noise_seeds, dtype=np.int64).reshape(-1)
+    if seeds.shape != (n,):
+        raise ValueError(f"noise_seeds must hold one seed per episode ({n}), got {seeds.shape[0]}")
+    return seeds
+
+
+def run_layouts(model: Any, dataset: Dataset, layouts: np.ndarray, trajectories: np.ndarray,
+                config: AssimilationConfig, *, split: str | None = None, noise_seeds: np.ndarray | None = None,
+                dtype: torch.dtype = torch.float32) -> AssimilationResult:
+    """Filter B (layout, trajectory) pairs of ``split`` (default ``config.split``) as one batch.
+
+    ``layouts`` (B, m) flat grid indices, ``trajectories`` (B,) indices into the split, ``noise_seeds``
+    (B,) the noise seed of each episode (default ``config.noise_seed`` for all). Returns an
+    :class:`~dks_gym.evaluation.AssimilationResult` whose ``step_mse`` is (B, n_t) (frame 0 is the initial
+    estimate, the same for every layout) and ``extras["layouts"]`` the layouts.
+    """
+    start = time.perf_counter()
+    split = split or config.split
+    layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
+    trajectories = np.asarray(trajectories, dtype=np.int64).reshape(-1)
+    _check_pairs(dataset, layouts, trajectories, split)
+    seeds = _episode_seeds(config, len(trajectories), noise_seeds)
+    union = np.unique(layouts)
+    position = np.searchsorted(union, layouts)  # (B, m): where each sensor's reading sits in the union
+    episodes, which = np.unique(np.stack([trajectories, seeds], axis=1), axis=0, return_inverse=True)
+    which = which.reshape(-1)
+    readers = []
+    for t, s in episodes:
+        env = _sensing_env(dataset, split, config, sensors=union)
+        env.reset(options={"trajectory": int(t), "noise_seed": int(s)})
+        readers.append(env)
+    envs = [readers[i] for i in which]
+    try:
+        assimilator = LatentAssimilator(model, filter_config(config), device=model_device(model), dtype=dtype)
+        assimilator.start(envs, seed=config.filter_seed)
+        assimilator.sensors.current = layouts
+        step_mse = np.empty((len(envs), dataset.n_frames), dtype=np.float64)
+        estimate = assimilator.estimate()
+        step_mse[:, 0] = assimilator.errors(estimate, envs)[0]
+        for k in range(1, dataset.n_frames):
+            readings = np.stack([env.step(None)[0] for env in readers])
+            assimilator.step(readings[which[:, None], position], layouts)
+            estimate = assimilator.estimate()
+            step_mse[:, k] = assimilator.errors(estimate, envs)[0]
+        return _result(model, config, trajectories, envs, assimilator, step_mse, estimate,
+                       time.perf_counter() - start, {"layouts": layouts, "noise_seeds": seeds})
+    finally:
+        for env in readers:
+            env.close()
+
+
+def forward_reference(model: Any, dataset: Dataset, config: AssimilationConfig, split: str = "train") -> np.ndarray:
+    """Per trajectory of ``split``, the forward run's (no assimilation) MSE averaged over frames 1..n_t-1, (n,).
+
+    The sensors do not matter for a forward run, so this is the scale the learned policies' rewards are
+    divided by: a layout scores 1 when the filter does no better than the open-loop model.
+    """
+    from dataclasses import replace
+
+    n = dataset.n_trajectories(split)
+    layout = dataset.benchmark.paper_layout(config.n_sensors) if config.n_sensors <= 32 else \
+        np.flatnonzero(dataset.benchmark.fluid_mask(dataset.cell_type).ravel())[: config.n_sensors]
+    result = run_layouts(model, dataset, np.repeat(np.asarray(layout)[None], n, 0), np.arange(n),
+                         replace(config, filter="forward"), split=split)
+    return result.step_mse[:, 1:].mean(axis=1)
+
+
+def run_adaptive(model: Any, dataset: Dataset, decide: Callable[[np.ndarray], np.ndarray], candidates: np.ndarray,
+                 trajectories: np.ndarray, config: AssimilationConfig, *, noise_seeds: np.ndarray | None = None,
+                 dtype: torch.dtype = torch.float32) -> AssimilationResult:
+    """Filter the trajectories of ``config.split`` with a layout per step: ``decide(belief (B, 2r)) -> (B, m)``.
+
+    ``decide`` returns indices into ``candidates`` (each row distinct); ``noise_seeds`` as in
+    :func:`run_layouts`. ``extras`` holds ``layouts`` (B, n_t - 1, m) flat grid indices read at frames
+    1..n_t-1 and ``decision_seconds`` (n_t - 1,), the wall time of each batched decision.
+    """
+    start = time.perf_counter()
+    trajectories = np.asarray(trajectories, dtype=np.int64).reshape(-1)
+    seeds = _episode_seeds(config, len(trajectories), noise_seeds)
+    candidates = np.asarray(candidates, dtype=np.int64)
+    envs = []
+    for t, s in zip(trajectories, seeds):
+        env = _sensing_env(dataset, config.split, config, n_sensors=config.n_sensors, sensor_mode="select",
+                           candidates=candidates)
+        env.reset(options={"trajectory": int(t), "noise_seed": int(s)})
+        envs.append(env)
+    try:
+        assimilator = LatentAssimilator(model, filter_config(config), device=model_device(model), dtype=dtype)
+        assimilator.start(envs, seed=config.filter_seed)
+        n_t = dataset.n_frames
+        step_mse = np.empty((len(envs), n_t), dtype=np.float64)
+        layouts = np.empty((len(envs), n_t - 1, config.n_sensors), dtype=np.int64)
+        decision_seconds = np.empty(n_t - 1)
+        estimate = assimilator.estimate()
+        step_mse[:, 0] = assimilator.errors(estimate, envs)[0]
+        for k in range(1, n_t):
+            tic = time.perf_counter()
+            actions = np.asarray(decide(assimilator.belief()))
+            decision_seconds[k - 1] = time.perf_counter() - tic
+            steps = [env.step(a) for env, a in zip(envs, actions)]
+            sensors = np.stack([s[4]["sensors"] for s in steps])
+            layouts[:, k - 1] = sensors
+            assimilator.step(np.stack([s[0] for s in steps]), sensors)
+            estimate = assimilator.estimate()
+            step_mse[:, k] = assimilator.errors(estimate, envs)[0]
+        return _result(model, config, trajectories, envs, assimilator, step_mse, estimate,
+                       time.perf_counter() - start,
+                       {"layouts": layouts, "decision_seconds": decision_seconds, "noise_seeds": seeds})
+    finally:
+        for env in envs:
+            env.close()
+
+
+def decoder_jacobians(model: Any, z: torch.Tensor, mu: torch.Tensor, cells: np.ndarray, channel: str,
+                      scored: tuple[int, ...], chunk: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Jacobians of the decoder at each latent state, detached, as (J, M):
+
+    J (n, len(cells), r) = dh/dz of the decoded ``channel`` at ``cells``; M (n, r, r) = G^T G / n_out with
+    G = d decode / dz over the ``scored`` channels and every cell, so that trace(M P) is the mean variance
+    of the decoded field under a latent covariance P. Forward-mode autodiff, one Jacobian-vector product
+    per latent direction (r decoder passes per state), in chunks of ``chunk`` states (default: as many as keep
+    the full Jacobian under about 2e7 numbers); pDMD's decoder is linear and its exact Jacobian is used.
+    """
+    c = model.shape.channels.index(channel)
+    idx = torch.as_tensor(cells, dtype=torch.long, device=z.device)
+    r = z.shape[1]
+    if model.kind == "pdmd":
+        n_cells = int(np.prod(model.grid))
+        std = model.stats_std.to(z)
+        G = torch.cat([model.basis[k * n_cells:(k + 1) * n_cells].to(z) * std[k] for k in scored])
+        J = model.observation_matrix(cells, channel).to(z)
+        M = G.T @ G / G.shape[0]
+        return J.expand(z.shape[0], *J.shape).clone(), M.expand(z.shape[0], r, r).clone()
+    n_out = model.n_fields * int(np.prod(model.grid))
+    chunk = chunk or int(np.clip(2e7 // (n_out * r), 1, 64))
+    Js, Ms = [], []
+    for s in range(0, z.shape[0], chunk):
+        zc, mc = z[s:s + chunk], mu[s:s + chunk]
+
+        def decode(x: torch.Tensor) -> torch.Tensor:
+            return model.decode(x, mc).flatten(2)
+
+        cols = []
+        for i in range(r):
+            tangent = torch.zeros_like(zc)
+            tangent[:, i] = 1.0
+            cols.append(torch.func.jvp(decode, (zc,), (tangent,))[1].detach())
+        G = torch.stack(cols, dim=-1)  # (chunk, C, n_cells, r)
+        Js.append(G[:, c, idx])
+        Gs = G[:, list(scored)].flatten(1, 2)
+        Ms.append(Gs.mT @ Gs / Gs.shape[1])
+    return torch.cat(Js), torch.cat(Ms)
+
+
+class LinearizedTrajectories:
+    """Encoded training trajectories with their forecast and observation Jacobians, for :func:`covariance_traces`.
+
+    Per trajectory: sigma (the env's noise level times max |observed channel|), F_k = df/dz at the encoded
+    true state z_k (Koopman: K(mu), pDMD: A~(mu)), J_k = dh/dz at z_k for every cell in ``cells`` and the
+    field weight M_k = G_k^T G_k / n_out of the decoder Jacobian over the scored channels. Building it
+    costs one encoder pass and r decoder Jacobian-vector products per frame (the greedy trace baseline's
+    main cost).
+    """
+
+    def __init__(self, model: Any, dataset: Dataset, trajectories: np.ndarray, cells: np.ndarray,
+                 config: AssimilationConfig, *, split: str = "train", dtype: torch.dtype = torch.float64) -> None:
+        bench = dataset.benchmark
+        device = model_device(model)
+        self.cells = np.unique(np.asarray(cells, dtype=np.int64))
+        self.trajectories = np.asarray(trajectories, dtype=np.int64)
+        fluid = bench.fluid_mask(dataset.cell_type)
+        F, J, M, sigma = [], [], [], []
+        for t in self.trajectories:
+            x = dataset.trajectory(split, int(t))
+            mu = torch.full((x.shape[0],), float(dataset.params(split)[t]), device=device)
+            sigma.append(max(noise_sigma(x[:, bench.observed_index], fluid, config.noise_level), 1e-12))
+            xt = torch.from_numpy(x).to(device)
+            with torch.no_grad():
+                z = torch.cat([model.encode(xt[s:s + 16], mu[s:s + 16]) for s in range(0, len(xt), 16)])
+            Fk = model.forecast_jacobian(z[:-1], mu[:-1]).detach()
+            F.append(Fk.expand(len(z) - 1, *Fk.shape[-2:]) if Fk.ndim == 2 else Fk)
+            Jt, Mt = decoder_jacobians(model, z, mu, self.cells, bench.observed_channel, bench.scored_indices)
+            J.append(Jt)
+            M.append(Mt)
+        self.F = torch.stack(F).to(dtype)  # (T, n_t - 1, r, r)
+        self.J = torch.stack(J).to(dtype)  # (T, n_t, n_cells, r)
+        self.M = torch.stack(M).to(dtype)  # (T, n_t, r, r)
+        self.sigma = torch.tensor(sigma, dtype=dtype, device=device)  # (T,)
+
+
+def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: AssimilationConfig,
+                      space: str = "field") -> np.ndarray:
+    """Trace of the EKF analysis covariance linearized along the encoded truth, (L, T, n_t - 1).
+
+    For L layouts and T trajectories at frames 1..n_t-1. ``space="field"``: trace(M_k P_a) = the mean
+    variance of the decoded scored field, the MSE the filter expects (physical units; latent directions the
+    decoder ignores do not count); ``space="latent"``: trace(P_a).
+
+    The recursion is the filters' own :func:`~dks_gym.filters.ekf_forecast` / :func:`~dks_gym.filters.ekf_update`
+    (Eqs. 14, 15, 17 with P0, Q of ``config`` and R = sigma^2 I), started at P0 I at frame 0 and updated
+    at frames 1..n_t-1. Adding a sensor can only shrink P_a (in the Loewner order, at every step), so a
+    greedy search on this objective improves monotonically.
+    """
+    if space not in ("field", "latent"):
+        raise ValueError(f"space must be 'field' or 'latent', got {space!r}")
+    layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
+    missing = ~np.isin(layouts, lin.cells)
+    if missing.any():
+        raise ValueError(f"layout cells {np.unique(layouts[missing])[:10].tolist()} have no Jacobian; "
+                         "build LinearizedTrajectories with every candidate cell")
+    n_layouts, n_traj = len(layouts), len(lin.trajectories)
+    position = torch.as_tensor(np.searchsorted(lin.cells, layouts), device=lin.J.device)  # (L, m)
+    which = torch.arange(n_traj, device=lin.J.device).repeat(n_layouts)  # element b = (layout b // T, traj b % T)
+    rows = position.repeat_interleave(n_traj, dim=0)  # (L T, m)
+    r = lin.F.shape[-1]
+    batch = n_layouts * n_traj
+    zeros = torch.zeros(batch, r, dtype=lin.J.dtype, device=lin.J.device)
+    state = GaussianState(zeros, config.P0 * torch.eye(r, dtype=lin.J.dtype, device=lin.J.device).expand(batch, r, r))
+    R = lin.sigma[which] ** 2
+    y = torch.zeros(batch, layouts.shape[1], dtype=lin.J.dtype, device=lin.J.device)
+    traces = []
+    for k in range(1, lin.J.shape[1]):
+        Jk = lin.J[which[:, None], k, rows]  # (L T, m, r)
+        dynamics = LatentDynamics(lambda z: z, lambda z: torch.zeros_like(y), forecast_jacobian=lin.F[which, k - 1],
+                                  observe_jacobian=Jk)
+        state, _ = ekf_forecast(state, dynamics, config.Q)
+        state, _ = ekf_update(state, y, dynamics, R)
+        if space == "field":
+            traces.append((lin.M[which, k] * state.cov).sum(dim=(-2, -1)))  # trace(M P), both symmetric
+        else:
+            traces.append(state.cov.diagonal(dim1=-2, dim2=-1).sum(-1))
+    return torch.stack(traces, dim=1).reshape(n_layouts, n_traj, -1).cpu().numpy()

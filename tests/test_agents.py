@@ -1,0 +1,302 @@
+"""Placement policies and the evaluation harness (agents/): valid layouts everywhere, QR against PySensors,
+greedy against the filter run independently, the monotone covariance objective, PPO smoke runs, the results file."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import dks_gym  # noqa: F401
+from agents.baselines import GreedyLayout, PaperLayout, QRLayout, RandomLayout, observed_snapshots
+from agents.policies import PlacementTask, candidate_lattice, check_layout, distinct_picks
+from agents.scoring import LinearizedTrajectories, covariance_traces, run_layouts
+from dks_gym.dataset import Dataset, write_dataset
+from dks_gym.evaluation.assimilation import AssimilationConfig
+from dks_gym.models import build_model
+from dks_gym.wrappers import LatentFilter
+
+sys.path.insert(0, str(Path(__file__).parent))
+from conftest import synthetic_data  # noqa: E402
+
+CFD = ("cylinder", "dambreak", "sphere")
+
+
+def _noisy_synthetic(benchmark: str, path: Path, solid_boost: float = 1.0, n_t: int = 6) -> Path:
+    """The conftest's synthetic CFD file with seeded noise added, so its 2 n_t training snapshots hold 2 n_t - 1
+    POD modes (the travelling waves alone hold a handful).
+
+    ``solid_boost`` scales the noise in solid cells: a large value makes them the most variable cells, the
+    ones an unconstrained QR would pick.
+    """
+    from dks_gym.benchmarks import get_benchmark
+
+    bench = get_benchmark(benchmark)
+    data = synthetic_data(benchmark, n_train=2, n_test=1, n_t=n_t)
+    rng = np.random.default_rng(1)
+    solid = ~bench.fluid_mask()
+    scale = np.where(solid, solid_boost, 1.0).astype(np.float32)
+
+    def noisy():
+        for split, i, fields in data.trajectories:
+            yield split, i, (fields + 0.3 * scale * rng.standard_normal(fields.shape)).astype(np.float32)
+
+    write_dataset(dataclasses.replace(data, trajectories=noisy()), benchmark, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def burgers_task(burgers_small: Path) -> PlacementTask:
+    """Burgers `small` data with an untrained lite Koopman model (r=4): the plumbing does not depend on training."""
+    ds = Dataset(burgers_small)
+    return PlacementTask(ds, build_model("burgers", "koopman", r=4, preset="lite", dataset=ds, seed=0))
+
+
+@pytest.fixture(scope="module")
+def cfd_tasks(tmp_path_factory: pytest.TempPathFactory) -> dict[str, PlacementTask]:
+    folder = tmp_path_factory.mktemp("agents_cfd")
+    tasks = {}
+    for bench in CFD:
+        ds = Dataset(_noisy_synthetic(bench, folder / f"{bench}.h5"))
+        model = build_model(bench, "koopman", r=4, preset="lite", dataset=ds, seed=0)
+        tasks[bench] = PlacementTask(ds, model, AssimilationConfig(n_sensors=4))
+    return tasks
+
+
+def _task(name: str, burgers_task: PlacementTask, cfd_tasks: dict[str, PlacementTask]) -> PlacementTask:
+    return burgers_task if name == "burgers" else cfd_tasks[name]
+
+
+@pytest.mark.parametrize("bench", ["burgers", *CFD])
+def test_every_policy_gives_valid_layouts(bench: str, burgers_task, cfd_tasks) -> None:
+    """m distinct fluid cells from every policy on every benchmark (static ones once, adaptive ones every step)."""
+    from stable_baselines3 import PPO
+
+    from agents.adaptive import PPOAdaptive, make_adaptive_env
+    from agents.evaluate import evaluate_policy
+    from agents.sequential import LayoutScorer, SequentialLayout, SequentialPlacementVecEnv
+
+    task = _task(bench, burgers_task, cfd_tasks)
+    task = dataclasses.replace(task, config=AssimilationConfig(n_sensors=4))
+    m = task.n_sensors
+    fluid = task.fluid_mask.ravel()
+    lattice = candidate_lattice(task, 3 * m)
+    static = [PaperLayout(), RandomLayout(0), RandomLayout(1), QRLayout(),
+              GreedyLayout("trace", candidates=lattice, n_trajectories=2),
+              GreedyLayout("error", candidates=lattice[: m + 1], n_trajectories=1)]
+    seq_env = SequentialPlacementVecEnv(LayoutScorer(task), lattice, n_envs=2)
+    static.append(SequentialLayout(agent=PPO("MlpPolicy", seq_env, n_steps=m, batch_size=2 * m, seed=0, device="cpu"),
+                                   candidates=lattice))
+    layouts = {}
+    for policy in static:
+        layout = policy.fit(task).layout
+        check_layout(task, layout)  # raises on repeats, solid cells, wrong length
+        assert layout.shape == (m,) and len(set(layout.tolist())) == m and fluid[layout].all(), policy.name
+        layouts[policy.name] = layout
+    assert set(layouts["sequential"]) <= set(lattice) and set(layouts["greedy"]) <= set(lattice)
+    assert not np.array_equal(np.sort(layouts["random-0"]), np.sort(layouts["random-1"]))
+    np.testing.assert_array_equal(RandomLayout(0).fit(task).layout, layouts["random-0"])  # seeded
+
+    agent = PPO("MlpPolicy", make_adaptive_env(task, lattice, n_envs=1), n_steps=8, batch_size=8, seed=0,
+                device="cpu")
+    run = evaluate_policy(task, PPOAdaptive(agent=agent, candidates=lattice), trajectories=[0])
+    steps = run.layouts.reshape(-1, m)
+    assert steps.shape[0] == task.dataset.n_frames - 1
+    for row in steps:
+        assert len(set(row.tolist())) == m and fluid[row].all() and set(row.tolist()) <= set(lattice.tolist())
+
+
+def test_qr_equals_pysensors_on_an_independent_svd_basis(burgers_task: PlacementTask) -> None:
+    """Our POD (Gram eigendecomposition) + SSPOR/QR gives the sensors PySensors picks with its own SVD basis."""
+    import pysensors as ps
+
+    qr = QRLayout().fit(burgers_task)
+    fields = np.asarray(burgers_task.dataset.fields("train")[:, :, 0], dtype=np.float64)  # (n, n_t, 1024)
+    X = fields.reshape(-1, fields.shape[-1])
+    X -= X.mean(axis=0)
+    reference = ps.SSPOR(basis=ps.basis.SVD(n_basis_modes=16, algorithm="arpack", random_state=0), n_sensors=16)
+    reference.fit(X, quiet=True)
+    np.testing.assert_array_equal(qr.layout, reference.get_selected_sensors())
+    assert not qr.used_ccqr  # Burgers has no solid cells: plain QR
+
+
+def test_ccqr_keeps_qr_out_of_the_body(tmp_path: Path) -> None:
+    """Cylinder data whose body cells vary most: plain QR picks body cells, the cost map (CCQR) never does,
+    and the layout equals PySensors' CCQR with that cost map on an independent SVD basis."""
+    import pysensors as ps
+
+    ds = Dataset(_noisy_synthetic("cylinder", tmp_path / "cylinder.h5", solid_boost=30.0))
+    task = PlacementTask(ds, build_model("cylinder", "koopman", r=4, preset="lite", dataset=ds, seed=0),
+                         AssimilationConfig(n_sensors=8))
+    solid = ~task.fluid_mask.ravel()
+    X = observed_snapshots(ds).astype(np.float64)
+    X -= X.mean(axis=0)
+    unconstrained = ps.SSPOR(basis=ps.basis.SVD(n_basis_modes=8, algorithm="arpack", random_state=0), n_sensors=8)
+    assert solid[unconstrained.fit(X, quiet=True).get_selected_sensors()].any()
+    policy = QRLayout().fit(task)
+    assert policy.used_ccqr and not solid[policy.layout].any()
+    costs = np.where(solid, 1e6, 0.0)
+    reference = ps.SSPOR(basis=ps.basis.SVD(n_basis_modes=8, algorithm="arpack", random_state=0),
+                         optimizer=ps.optimizers.CCQR(sensor_costs=costs), n_sensors=8)
+    np.testing.assert_array_equal(policy.layout, reference.fit(X, quiet=True).get_selected_sensors())
+
+
+def test_greedy_trace_falls_monotonically_and_matches_a_numpy_riccati(burgers_task: PlacementTask) -> None:
+    """The covariance objective only falls as sensors are added (Loewner order of the Riccati map), and its
+    value equals a plain numpy EKF covariance recursion with the same Jacobians."""
+    task = dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=6))
+    lattice = candidate_lattice(task, 24)
+    greedy = GreedyLayout("trace", candidates=lattice, n_trajectories=2).fit(task)
+    history = np.array(greedy.history)
+    assert np.all(np.diff(history) <= 1e-12 * history[0]) and history[-1] < history[0]
+
+    lin = LinearizedTrajectories(task.model, task.dataset, greedy.used_trajectories, lattice, task.config)
+    cfg = task.config
+    layout = greedy.layout
+    ours = covariance_traces(lin, layout[None], cfg)[0]  # (T, n_t - 1)
+    pos = np.searchsorted(lin.cells, layout)
+    for t in range(len(lin.trajectories)):
+        P = cfg.P0 * np.eye(task.model.r)
+        R = float(lin.sigma[t]) ** 2 * np.eye(len(layout))
+        for k in range(1, lin.J.shape[1]):
+            F, J, M = lin.F[t, k - 1].numpy(), lin.J[t, k][pos].numpy(), lin.M[t, k].numpy()
+            P = F @ P @ F.T + cfg.Q * np.eye(task.model.r)
+            K = P @ J.T @ np.linalg.inv(J @ P @ J.T + R)
+            P = (np.eye(task.model.r) - K @ J) @ P
+            assert ours[t, k - 1] == pytest.approx(np.trace(M @ P), rel=1e-6)
+    assert greedy.history[-1] == pytest.approx(ours.mean(), rel=1e-9)
+
+
+def test_greedy_error_scores_are_the_filter_error_of_latent_filter_runs(burgers_task: PlacementTask) -> None:
+    """The greedy 'error' objective of its final layout equals the time-averaged MSE of LatentFilter episodes
+    on the same training trajectories and noise (a second, unbatched implementation of the same runs)."""
+    task = dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=3, noise_seed=5))
+    greedy = GreedyLayout("error", candidates=np.arange(8, 1024, 128), n_trajectories=2).fit(task)
+    assert len(greedy.scores[0]) == 8 and len(greedy.scores[-1]) == 6
+    errors = []
+    for t in greedy.used_trajectories:
+        env = LatentFilter(gym.make("DKS/Burgers-v0", data_path=str(task.dataset.path), split="train",
+                                    sensors=greedy.layout), model=task.model, filter="ekf")
+        env.reset(options={"trajectory": int(t), "noise_seed": 5})
+        done, mse = False, []
+        while not done:
+            _, _, terminated, truncated, info = env.step(None)
+            mse.append(info["mse"])
+            done = terminated or truncated
+        errors.append(np.mean(mse))
+    assert greedy.history[-1] == pytest.approx(np.mean(errors), rel=2e-4)
+
+
+def test_run_layouts_is_the_filter_per_layout(burgers_task: PlacementTask) -> None:
+    """Two layouts batched on the same trajectory (sharing cells) give each what a lone run of that layout gives."""
+    cfg = AssimilationConfig(n_sensors=4, noise_seed=3)
+    a, b = np.array([10, 300, 600, 900]), np.array([10, 310, 620, 900])
+    both = run_layouts(burgers_task.model, burgers_task.dataset, np.stack([a, b]), [1, 1], cfg)
+    for row, layout in enumerate((a, b)):
+        alone = run_layouts(burgers_task.model, burgers_task.dataset, layout[None], [1], cfg)
+        np.testing.assert_allclose(both.step_mse[row], alone.step_mse[0], rtol=1e-4, atol=1e-9)
+    assert not np.allclose(both.step_mse[0], both.step_mse[1])
+
+
+def test_distinct_picks_moves_repeats_to_the_nearest_free_index() -> None:
+    picks = np.array([[3, 3, 3, 0, 9], [0, 1, 2, 3, 4], [9, 9, 9, 9, 9]])
+    out = distinct_picks(picks, 10)
+    np.testing.assert_array_equal(out[0], [3, 2, 4, 0, 9])  # lower neighbour first, then the upper one
+    np.testing.assert_array_equal(out[1], picks[1])
+    np.testing.assert_array_equal(out[2], [9, 8, 7, 6, 5])
+    with pytest.raises(ValueError, match="distinct"):
+        distinct_picks(np.zeros((1, 4), dtype=int), 3)
+
+
+def test_ppo_smoke_sequential_and_adaptive_with_checkpoints(burgers_task: PlacementTask, tmp_path: Path) -> None:
+    """A few hundred PPO steps of each learner run, save checkpoint, metadata and learning curve, and reload
+    to the same decisions; a checkpoint refuses a task with another sensor count."""
+    from agents.adaptive import PPOAdaptive, train_adaptive
+    from agents.sequential import SequentialLayout, train_sequential
+
+    task = dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=4))
+    agent, meta = train_sequential(task, timesteps=64, n_envs=4, n_candidates=16, seed=0, out=tmp_path,
+                                   ppo_kwargs={"batch_size": 16})
+    assert meta["timesteps"] == 64 and meta["filter_runs"] > 0 and meta["learning_curve"]["timesteps"]
+    assert (tmp_path / "sequential.zip").exists() and (tmp_path / "sequential_curve.png").exists()
+    trained = SequentialLayout(agent=agent, candidates=np.array(meta["candidates"])).fit(task).layout
+    np.testing.assert_array_equal(SequentialLayout(tmp_path / "sequential.zip").fit(task).layout, trained)
+
+    agent, meta = train_adaptive(task, timesteps=256, n_envs=2, n_candidates=16, seed=0, out=tmp_path,
+                                 ppo_kwargs={"n_steps": 64, "batch_size": 64})
+    assert meta["timesteps"] >= 256 and (tmp_path / "adaptive_curve.png").exists()
+    belief = np.random.default_rng(0).standard_normal((3, 2 * task.model.r)).astype(np.float32)
+    live = PPOAdaptive(agent=agent, candidates=np.array(meta["candidates"])).fit(task)
+    loaded = PPOAdaptive(tmp_path / "adaptive.zip").fit(task)
+    np.testing.assert_array_equal(loaded.decide(belief), live.decide(belief))
+    other = dataclasses.replace(task, config=AssimilationConfig(n_sensors=5))
+    with pytest.raises(ValueError, match="n_sensors"):
+        PPOAdaptive(tmp_path / "adaptive.zip").fit(other)
+
+
+def test_evaluate_placement_writes_a_ranked_valid_results_file(burgers_task, tmp_path: Path, monkeypatch) -> None:
+    """The CLI command ranks the policies by time-averaged MSE, stores a schema-valid JSON whose paper record
+    equals a LatentFilter run, and draws the layout figure."""
+    from click.testing import CliRunner
+
+    from agents.cli import evaluate_placement_command
+    from agents.policies import PlacementTask as Task
+    from dks_gym.evaluation.results import load_results
+
+    captured = {}
+
+    def fake_load(cls, benchmark, model="koopman", **kwargs):
+        captured.update(kwargs)
+        return dataclasses.replace(burgers_task, config=AssimilationConfig(**{
+            k: kwargs[k] for k in ("filter", "n_sensors", "noise_level", "noise_seed")}))
+
+    monkeypatch.setattr(Task, "load", classmethod(fake_load))
+    result = CliRunner().invoke(evaluate_placement_command, [
+        "burgers", "--policies", "paper,random,qr", "--random-seeds", "2", "--noise-seed", "7", "--noise-seeds", "2",
+        "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert captured["noise_seed"] == 7 and captured["filter"] == "ekf"
+    doc = load_results(tmp_path / "placement.json")
+    recs = {r["policy"]: r for r in doc["records"]}
+    assert set(recs) == {"paper", "random-0", "random-1", "qr", "forward"}
+    assert recs["qr"]["batch"] == 6 and recs["qr"]["noise_seeds"] == [7, 7, 7, 8, 8, 8]
+    assert recs["qr"]["trajectories"] == [0, 1, 2, 0, 1, 2]
+    table = (tmp_path / "placement.md").read_text()
+    ranked = [line.split("|")[2].strip() for line in table.splitlines()[2:] if line.startswith("| ") and
+              line.split("|")[1].strip().isdigit()]
+    assert ranked == sorted(ranked, key=lambda p: recs[p]["time_mean_mse_mean"])
+    assert (tmp_path / "placement_layouts.png").stat().st_size > 10_000
+
+    env = LatentFilter(gym.make("DKS/Burgers-v0", data_path=str(burgers_task.dataset.path)), model=burgers_task.model)
+    env.reset(options={"trajectory": 2, "noise_seed": 7})
+    done = False
+    while not done:
+        _, _, terminated, truncated, info = env.step(None)
+        done = terminated or truncated
+    assert recs["paper"]["sensors"] == PaperLayout().fit(burgers_task).layout.tolist()
+    assert recs["paper"]["per_trajectory_final_mse"][2] == pytest.approx(info["mse"], rel=2e-4)
+
+
+def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
+    from agents.evaluate import make_policies
+
+    cyl = cfd_tasks["cylinder"]
+    body = np.flatnonzero(~cyl.fluid_mask.ravel())[:3]
+    with pytest.raises(ValueError, match="solid"):
+        PlacementTask(cyl.dataset, cyl.model, cyl.config, candidates=np.concatenate([body, np.arange(10)]))
+    with pytest.raises(ValueError, match="solid"):
+        check_layout(cyl, np.concatenate([body[:2], [0, 1]]))
+    with pytest.raises(ValueError, match="repeats"):
+        check_layout(burgers_task, np.zeros(16, dtype=int))
+    with pytest.raises(ValueError, match="n_modes"):
+        QRLayout(n_modes=4).fit(burgers_task)
+    with pytest.raises(ValueError, match="unknown policies"):
+        make_policies("paper,oracle")
+    with pytest.raises(ValueError, match="model is for"):
+        PlacementTask(burgers_task.dataset, cyl.model)
+    with pytest.raises(RuntimeError, match="not fitted"):
+        PaperLayout().episode_layouts(np.zeros(2))
