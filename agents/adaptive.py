@@ -24,7 +24,16 @@ import numpy as np
 
 from .baselines import PaperLayout
 from .policies import AdaptivePolicy, PlacementTask, candidate_lattice, distinct_picks
-from .rl import learning_curve_callback, load_agent, model_identity, quiet_logger, save_agent, save_learning_curve
+from .rl import (
+    learning_curve_callback,
+    load_agent,
+    model_identity,
+    offline_seconds,
+    quiet_logger,
+    save_agent,
+    save_learning_curve,
+    trainer_command,
+)
 from .scoring import filter_config, forward_reference, run_layouts
 
 
@@ -145,8 +154,7 @@ class PPOAdaptive(AdaptivePolicy):
 
     @property
     def offline_seconds(self) -> float:
-        loaded = self.checkpoint is not None and "train_seconds" in self.meta
-        return self.fit_seconds + (float(self.meta["train_seconds"]) if loaded else 0.0)
+        return offline_seconds(self.fit_seconds, self.checkpoint, self.meta)
 
     def describe(self) -> dict[str, Any]:
         out = dict(super().describe(), checkpoint=None if self.checkpoint is None else str(self.checkpoint),
@@ -159,31 +167,16 @@ class PPOAdaptive(AdaptivePolicy):
 
 def main(argv: list[str] | None = None) -> None:
     """Command line: train the adaptive PPO agent and save checkpoint, metadata and learning curve."""
-    import click
 
-    @click.command()
-    @click.argument("benchmark")
-    @click.option("--model", default="koopman", show_default=True)
-    @click.option("--filter", "filter_", default="ekf", show_default=True)
-    @click.option("--preset", default="lite", show_default=True, help="Latent model preset.")
-    @click.option("--data-preset", default="paper", show_default=True)
-    @click.option("--timesteps", type=int, default=20480, show_default=True)
-    @click.option("--n-envs", type=int, default=8, show_default=True)
-    @click.option("--n-candidates", type=int, default=32, show_default=True)
-    @click.option("--n-sensors", type=int, default=16, show_default=True)
-    @click.option("--seed", type=int, default=0, show_default=True)
-    @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True)
-    def cli(benchmark, model, filter_, preset, data_preset, timesteps, n_envs, n_candidates, n_sensors, seed, out):
-        """Train PPO to choose BENCHMARK's sensors at every step from the filter's belief."""
-        task = PlacementTask.load(benchmark, model, model_preset=preset, data_preset=data_preset,
-                                  filter=filter_, n_sensors=n_sensors, seed=seed)
-        _, meta = train_adaptive(task, timesteps=timesteps, n_envs=n_envs, n_candidates=n_candidates, seed=seed,
-                                 out=out)
+    @trainer_command("Train PPO to choose BENCHMARK's sensors at every step from the filter's belief.",
+                     timesteps=20480, n_envs=8)
+    def cli(task: PlacementTask, **settings: Any) -> str:
+        _, meta = train_adaptive(task, **settings)
         curve = meta["learning_curve"]["mean_return"]
         first, last = (curve[0], curve[-1]) if curve else (float("nan"), float("nan"))
-        click.echo(f"trained {meta['timesteps']} steps in {meta['train_seconds']:.0f} s; "
-                   f"mean episode return first/last rollout {first:.2f} / {last:.2f}; "
-                   f"paper layout {meta['paper_layout_return']:.2f}\nwrote {out}")
+        return (f"trained {meta['timesteps']} steps in {meta['train_seconds']:.0f} s; "
+                f"mean episode return first/last rollout {first:.2f} / {last:.2f}; "
+                f"paper layout {meta['paper_layout_return']:.2f}\nwrote {settings['out']}")
 
     cli.main(args=argv, standalone_mode=True)
 

@@ -136,3 +136,42 @@ def _plain(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"cannot store {type(obj).__name__} in agent metadata")
+
+
+def trainer_command(help_text: str, timesteps: int, n_envs: int):
+    """A click command with the options both agent trainers share; the decorated function gets the loaded
+    ``PlacementTask`` and the training settings (timesteps, n_envs, n_candidates, seed, out)."""
+    import click
+
+    def wrap(train: Any) -> Any:
+        @click.command(help=help_text)
+        @click.argument("benchmark")
+        @click.option("--model", default="koopman", show_default=True)
+        @click.option("--filter", "filter_", default="ekf", show_default=True)
+        @click.option("--preset", default="lite", show_default=True, help="Latent model preset.")
+        @click.option("--data-preset", default="paper", show_default=True)
+        @click.option("--timesteps", type=int, default=timesteps, show_default=True)
+        @click.option("--n-envs", type=int, default=n_envs, show_default=True)
+        @click.option("--n-candidates", type=int, default=32, show_default=True)
+        @click.option("--n-sensors", type=int, default=16, show_default=True)
+        @click.option("--seed", type=int, default=0, show_default=True)
+        @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True)
+        def command(benchmark: str, model: str, filter_: str, preset: str, data_preset: str, timesteps: int,
+                    n_envs: int, n_candidates: int, n_sensors: int, seed: int, out: Path) -> None:
+            from .policies import PlacementTask
+
+            task = PlacementTask.load(benchmark, model, model_preset=preset, data_preset=data_preset,
+                                      filter=filter_, n_sensors=n_sensors, seed=seed)
+            click.echo(train(task, timesteps=timesteps, n_envs=n_envs, n_candidates=n_candidates, seed=seed,
+                             out=out))
+
+        return command
+
+    return wrap
+
+
+def offline_seconds(fit_seconds: float, checkpoint: Any, meta: dict[str, Any]) -> float:
+    """Fitting time plus, for an agent loaded from a checkpoint, the training time recorded with it."""
+    loaded = checkpoint is not None and "train_seconds" in meta
+    return fit_seconds + (float(meta["train_seconds"]) if loaded else 0.0)
+

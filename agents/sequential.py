@@ -31,7 +31,16 @@ from gymnasium import spaces
 
 from .baselines import PaperLayout
 from .policies import PlacementTask, StaticPolicy, candidate_lattice
-from .rl import learning_curve_callback, load_agent, model_identity, quiet_logger, save_agent, save_learning_curve
+from .rl import (
+    learning_curve_callback,
+    load_agent,
+    model_identity,
+    offline_seconds,
+    quiet_logger,
+    save_agent,
+    save_learning_curve,
+    trainer_command,
+)
 from .scoring import forward_reference, run_layouts
 
 
@@ -277,8 +286,7 @@ class SequentialLayout(StaticPolicy):
 
     @property
     def offline_seconds(self) -> float:
-        loaded = self.checkpoint is not None and "train_seconds" in self.meta
-        return self.fit_seconds + (float(self.meta["train_seconds"]) if loaded else 0.0)
+        return offline_seconds(self.fit_seconds, self.checkpoint, self.meta)
 
     def describe(self) -> dict[str, Any]:
         out = dict(super().describe(), checkpoint=None if self.checkpoint is None else str(self.checkpoint))
@@ -290,31 +298,16 @@ class SequentialLayout(StaticPolicy):
 
 def main(argv: list[str] | None = None) -> None:
     """Command line: train the sequential placement agent and save checkpoint, metadata and learning curve."""
-    import click
 
-    @click.command()
-    @click.argument("benchmark")
-    @click.option("--model", default="koopman", show_default=True)
-    @click.option("--filter", "filter_", default="ekf", show_default=True)
-    @click.option("--preset", default="lite", show_default=True, help="Latent model preset.")
-    @click.option("--data-preset", default="paper", show_default=True)
-    @click.option("--timesteps", type=int, default=16384, show_default=True)
-    @click.option("--n-envs", type=int, default=16, show_default=True)
-    @click.option("--n-candidates", type=int, default=32, show_default=True)
-    @click.option("--n-sensors", type=int, default=16, show_default=True)
-    @click.option("--seed", type=int, default=0, show_default=True)
-    @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True)
-    def cli(benchmark, model, filter_, preset, data_preset, timesteps, n_envs, n_candidates, n_sensors, seed, out):
-        """Train PPO to place BENCHMARK's sensors one by one (reward: minus the filter's normalized error)."""
-        task = PlacementTask.load(benchmark, model, model_preset=preset, data_preset=data_preset,
-                                  filter=filter_, n_sensors=n_sensors, seed=seed)
-        agent, meta = train_sequential(task, timesteps=timesteps, n_envs=n_envs, n_candidates=n_candidates,
-                                       seed=seed, out=out, progress=False)
+    @trainer_command("Train PPO to place BENCHMARK's sensors one by one (reward: minus the filter's normalized "
+                     "error).", timesteps=16384, n_envs=16)
+    def cli(task: PlacementTask, **settings: Any) -> str:
+        agent, meta = train_sequential(task, **settings, progress=False)
         policy = SequentialLayout(agent=agent, candidates=np.asarray(meta["candidates"])).fit(task)
         curve = meta["learning_curve"]["mean_return"]
-        click.echo(f"trained {meta['timesteps']} steps in {meta['train_seconds']:.0f} s ({meta['filter_runs']} filter "
-                   f"runs); mean return first/last rollout {curve[0]:.3f} / {curve[-1]:.3f}; paper layout "
-                   f"{meta['paper_layout_return']:.3f}\nlayout: {sorted(policy.layout.tolist())}\nwrote {out}")
+        return (f"trained {meta['timesteps']} steps in {meta['train_seconds']:.0f} s ({meta['filter_runs']} filter "
+                f"runs); mean return first/last rollout {curve[0]:.3f} / {curve[-1]:.3f}; paper layout "
+                f"{meta['paper_layout_return']:.3f}\nlayout: {sorted(policy.layout.tolist())}\nwrote {settings['out']}")
 
     cli.main(args=argv, standalone_mode=True)
 

@@ -300,3 +300,31 @@ def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
         PlacementTask(burgers_task.dataset, cyl.model)
     with pytest.raises(RuntimeError, match="not fitted"):
         PaperLayout().episode_layouts(np.zeros(2))
+
+
+@pytest.mark.parametrize("kind", ["sequential", "adaptive"])
+def test_trainer_command_lines_write_checkpoint_and_curve(kind: str, burgers_task, tmp_path: Path, monkeypatch,
+                                                          capsys) -> None:
+    """`python -m agents.sequential|adaptive BENCHMARK --out DIR` trains and writes the checkpoint, its metadata
+    and the learning-curve figure, with the options passed through to the task."""
+    import importlib
+
+    from agents.policies import PlacementTask as Task
+
+    captured = {}
+
+    def fake_load(cls, benchmark, model="koopman", **kwargs):
+        captured.update(kwargs, benchmark=benchmark, model=model)
+        return dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=kwargs["n_sensors"]))
+
+    monkeypatch.setattr(Task, "load", classmethod(fake_load))
+    module = importlib.import_module(f"agents.{kind}")
+    steps = ["--timesteps", "64", "--n-envs", "16"] if kind == "sequential" else ["--timesteps", "256", "--n-envs", "2"]
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(["burgers", "--n-sensors", "4", "--n-candidates", "16", "--seed", "3", *steps,
+                     "--out", str(tmp_path)])
+    assert exit_info.value.code == 0
+    assert captured["n_sensors"] == 4 and captured["seed"] == 3 and captured["model_preset"] == "lite"
+    for suffix in (".zip", ".json", "_curve.png"):
+        assert (tmp_path / f"{kind}{suffix}").exists()
+    assert f"wrote {tmp_path}" in capsys.readouterr().out
