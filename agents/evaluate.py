@@ -45,22 +45,27 @@ from .sequential import SequentialLayout
 POLICIES = ("paper", "random", "qr", "greedy", "greedy-trace", "sequential", "ppo")
 
 
-def make_policies(names: Sequence[str] | str, *, random_seeds: int = 5, greedy_candidates: int = 32,
+def make_policies(names: Sequence[str | PlacementPolicy] | str, *, random_seeds: int = 5, greedy_candidates: int = 32,
                   greedy_trajectories: int | None = None, sequential: str | Path | None = None,
                   ppo: str | Path | None = None, agent_timesteps: int | None = None,
                   agent_out: str | Path | None = None) -> list[PlacementPolicy]:
     """Policies by name ("paper", "random" (``random_seeds`` seeded layouts), "qr", "greedy" (filter error),
-    "greedy-trace", "sequential", "ppo"). Learned ones load ``sequential`` / ``ppo`` checkpoints when given,
-    else train (``agent_timesteps`` steps, default each trainer's, checkpoints to ``agent_out``)."""
+    "greedy-trace", "sequential", "ppo") or given as :class:`PlacementPolicy` objects (your own, used as
+    they are). Learned ones load ``sequential`` / ``ppo`` checkpoints when given, else train
+    (``agent_timesteps`` steps, default each trainer's, checkpoints to ``agent_out``)."""
     if isinstance(names, str):
         names = [n.strip() for n in names.split(",") if n.strip()]
-    unknown = [n for n in names if n not in POLICIES]
+    unknown = [n for n in names if not isinstance(n, PlacementPolicy) and n not in POLICIES]
     if unknown or not names:
-        raise ValueError(f"unknown policies {unknown}; choose from {', '.join(POLICIES)} (comma-separated)")
+        raise ValueError(f"unknown policies {unknown}; choose from {', '.join(POLICIES)} (comma-separated) "
+                         "or pass PlacementPolicy objects")
     steps = {} if agent_timesteps is None else {"timesteps": int(agent_timesteps)}
     out: list[PlacementPolicy] = []
-    for name in dict.fromkeys(names):
-        if name == "paper":
+    unique = [n for i, n in enumerate(names) if isinstance(n, PlacementPolicy) or n not in names[:i]]
+    for name in unique:
+        if isinstance(name, PlacementPolicy):
+            out.append(name)
+        elif name == "paper":
             out.append(PaperLayout())
         elif name == "random":
             out.extend(RandomLayout(seed) for seed in range(random_seeds))
@@ -73,6 +78,10 @@ def make_policies(names: Sequence[str] | str, *, random_seeds: int = 5, greedy_c
             out.append(SequentialLayout(sequential, out=agent_out, **steps))
         else:
             out.append(PPOAdaptive(ppo, out=agent_out, **steps))
+    names_seen = [p.name for p in out]
+    clash = sorted({n for n in names_seen if names_seen.count(n) > 1})
+    if clash:
+        raise ValueError(f"two policies are named {clash}; give each policy a distinct name")
     return out
 
 
@@ -310,7 +319,7 @@ def layout_figure(task: PlacementTask, results: Sequence[PolicyResult], path: st
 # Entry point -------------------------------------------------------------------------------------------
 def evaluate_placement(
     benchmark: str,
-    policies: Sequence[str] | str = ("paper", "random", "qr", "greedy"),
+    policies: Sequence[str | PlacementPolicy] | str = ("paper", "random", "qr", "greedy"),
     *,
     model: str = "koopman",
     filter: str = "ekf",

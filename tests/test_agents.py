@@ -328,3 +328,26 @@ def test_trainer_command_lines_write_checkpoint_and_curve(kind: str, burgers_tas
     for suffix in (".zip", ".json", "_curve.png"):
         assert (tmp_path / f"{kind}{suffix}").exists()
     assert f"wrote {tmp_path}" in capsys.readouterr().out
+
+
+def test_custom_policy_objects_are_ranked_beside_named_ones(burgers_task, tmp_path: Path) -> None:
+    """evaluate_placement takes the user's own StaticPolicy next to the built-in names and runs its layout;
+    duplicate names and unknown names are refused."""
+    from agents import StaticPolicy
+    from agents.evaluate import evaluate_placement, make_policies
+
+    class Clustered(StaticPolicy):
+        name = "clustered"
+
+        def choose(self, task):
+            return task.fluid_cells[:task.n_sensors]
+
+    task = dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=4))
+    _, results = evaluate_placement("burgers", ["paper", Clustered()], task=task, log=lambda _: None)
+    by_name = {r.name: r for r in results}
+    np.testing.assert_array_equal(by_name["clustered"].layouts[0], task.fluid_cells[:4])
+    assert set(by_name) == {"paper", "clustered"}
+    with pytest.raises(ValueError, match="distinct name"):
+        make_policies([Clustered(), Clustered()])
+    with pytest.raises(ValueError, match="unknown policies"):
+        make_policies("paper,best")
