@@ -29,15 +29,30 @@ def data() -> None:
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Output file (default: $DKS_GYM_HOME/data/BENCHMARK-PRESET.h5).")
 @click.option("--overwrite", is_flag=True, help="Regenerate even if the file exists.")
-def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, overwrite: bool) -> None:
-    """Generate BENCHMARK's dataset (burgers, cylinder, dambreak, sphere)."""
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Parallel OpenFOAM runs for cylinder and dambreak (default 1); not for burgers.")
+def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, overwrite: bool,
+                  workers: int | None) -> None:
+    """Generate BENCHMARK's dataset (burgers, cylinder, dambreak, sphere).
+
+    The CFD benchmarks cache their OpenFOAM runs in FILE.work next to the output: an interrupted
+    generation resumes when rerun, and the folder is deleted once the file is written.
+    """
     from .dataset import Dataset, generate_dataset
     from .home import DataHomeError
+    from .solvers.openfoam import OpenFOAMError
 
+    benchmark = benchmark.lower()
+    options = {}
+    if workers is not None:
+        if benchmark == "burgers":
+            raise click.UsageError("--workers is for the OpenFOAM benchmarks (cylinder, dambreak); "
+                                   "burgers is one batched solve")
+        options["workers"] = workers
     start = time.perf_counter()
     try:
-        path = generate_dataset(benchmark.lower(), preset, path=out, seed=seed, overwrite=overwrite)
-    except (GeneratorUnavailable, DataHomeError) as exc:
+        path = generate_dataset(benchmark, preset, path=out, seed=seed, overwrite=overwrite, **options)
+    except (GeneratorUnavailable, DataHomeError, OpenFOAMError, ValueError) as exc:
         raise click.ClickException(str(exc)) from exc
     with Dataset(path) as ds:
         click.echo(ds.summary())
@@ -56,6 +71,60 @@ def data_info(file: Path) -> None:
     except SchemaError as exc:
         click.echo(f"invalid dataset: {exc}", err=True)
         sys.exit(1)
+
+
+#: Optional Python packages: (import name, distribution, what needs it, pip extra).
+_OPTIONAL_PACKAGES = (
+    ("fluidfoam", "fluidfoam", "reading OpenFOAM output (cylinder, dambreak data)", "cfd"),
+    ("dask", "dask", "Dask, for spreading OpenFOAM runs over a cluster", "cluster"),
+    ("distributed", "distributed", "Dask's cluster executor (client.get_executor())", "cluster"),
+    ("pydmd", "pydmd", "pDMD latent model", "models"),
+    ("xlstm", "xlstm", "xLSTM latent model", "models"),
+    ("pysensors", "python-sensors", "sensor placement baselines", "agents"),
+    ("stable_baselines3", "stable-baselines3", "RL sensor placement agents", "agents"),
+)
+
+
+@main.command("doctor")
+def doctor() -> None:
+    """Report which external tools and optional packages are present (OpenFOAM, CUDA, extras)."""
+    import importlib
+    from importlib import metadata
+
+    from .solvers.openfoam import INSTALL_HINT, TOOLS
+    from .solvers.openfoam import doctor as openfoam_report
+
+    report = openfoam_report()
+    click.echo("OpenFOAM (cylinder and dambreak generators):")
+    version = report.get("OpenFOAM version")
+    missing = [tool for tool in TOOLS if report.get(tool) is None]
+    click.echo(f"  version: {version or 'not found'}   WM_PROJECT_DIR: {report.get('WM_PROJECT_DIR')}")
+    for tool in TOOLS:
+        click.echo(f"  {tool:<15} {report.get(tool) or 'MISSING'}")
+    if missing:
+        click.echo(f"  -> {INSTALL_HINT}")
+
+    import torch
+
+    click.echo(f"torch {torch.__version__}:")
+    if torch.cuda.is_available():
+        names = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
+        click.echo(f"  CUDA available ({torch.version.cuda}): {names}")
+    else:
+        click.echo("  CUDA not available (CPU only)")
+
+    click.echo("optional packages:")
+    for module, dist, purpose, extra in _OPTIONAL_PACKAGES:
+        try:
+            importlib.import_module(module)
+        except Exception as exc:  # noqa: BLE001 - any import failure means the feature is unavailable
+            status = f"MISSING ({type(exc).__name__}) -> pip install 'dks-gym[{extra}]'"
+        else:
+            try:
+                status = metadata.version(dist)
+            except metadata.PackageNotFoundError:
+                status = "installed"
+        click.echo(f"  {dist:<18} {status:<12} {purpose}")
 
 
 @main.command("train")

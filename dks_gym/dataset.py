@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import uuid
 from datetime import datetime, timezone
 from pathlib import Path
@@ -210,9 +211,16 @@ def generate_dataset(
     seed: int = 0,
     overwrite: bool = False,
     progress: bool = True,
+    keep_workdir: bool = False,
     **options: Any,
 ) -> Path:
-    """Generate ``benchmark``'s dataset for ``preset`` unless it exists; return the file's path."""
+    """Generate ``benchmark``'s dataset for ``preset`` unless it exists; return the file's path.
+
+    Generators that cache work (the OpenFOAM runs of the CFD benchmarks) use ``<stem>.work`` next to the
+    file. It is deleted after a successful write unless ``keep_workdir`` (or the generator option
+    ``keep_cases``) is set, and kept after a failure or an interruption so that a rerun resumes from it.
+    ``options`` go to the benchmark's generator (e.g. ``workers=2`` for the CFD benchmarks).
+    """
     bench = get_benchmark(benchmark)
     check_preset(preset)
     path = Path(path) if path is not None else dataset_path(bench.name, preset)
@@ -223,6 +231,8 @@ def generate_dataset(
         workdir = path.with_name(f"{path.stem}.work")
         data = bench.generate(preset, seed=seed, workdir=workdir, progress=progress, **options)
         write_dataset(data, bench, path, extra_attrs={"preset": preset, "seed": seed})
+        if not (keep_workdir or options.get("keep_cases")):
+            shutil.rmtree(workdir, ignore_errors=True)
     return path
 
 

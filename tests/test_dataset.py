@@ -230,3 +230,34 @@ def test_generator_extras_round_trip_and_bad_shape_is_refused(tmp_path: Path) ->
     with pytest.raises(ValueError, match="first axis must be the 2 trajectories"):
         write_dataset(data, "cylinder", tmp_path / "bad.h5")
     assert not (tmp_path / "bad.h5").exists()
+
+
+def test_generate_dataset_removes_the_work_cache_only_after_success(tmp_path: Path) -> None:
+    """The generator's `<stem>.work` cache (OpenFOAM runs) goes once the file is written, stays on failure."""
+    import dataclasses
+
+    from dks_gym.benchmarks import get_benchmark
+    from dks_gym.benchmarks.cylinder import CylinderBenchmark
+    from dks_gym.dataset import generate_dataset
+
+    class Caching(CylinderBenchmark):
+        fail = True
+
+        def generate(self, preset="paper", *, seed=0, workdir=None, progress=True, **options):
+            Path(workdir, "runs").mkdir(parents=True, exist_ok=True)
+            Path(workdir, "runs", "train-000.npz").write_bytes(b"cached run")
+            if Caching.fail:
+                raise RuntimeError("solver failed")
+            return synthetic_data("cylinder", n_train=2, n_test=1)
+
+    bench = Caching(**{f.name: getattr(get_benchmark("cylinder"), f.name) for f in dataclasses.fields(Caching)})
+    path = tmp_path / "cylinder-small.h5"
+    work = tmp_path / "cylinder-small.work"
+    with pytest.raises(RuntimeError, match="solver failed"):
+        generate_dataset(bench, "small", path=path, progress=False)
+    assert (work / "runs" / "train-000.npz").exists() and not path.exists()  # kept so a rerun resumes
+    Caching.fail = False
+    generate_dataset(bench, "small", path=path, progress=False, keep_workdir=True)
+    assert path.exists() and work.exists()
+    generate_dataset(bench, "small", path=path, progress=False, overwrite=True)
+    assert path.exists() and not work.exists()

@@ -16,17 +16,22 @@ Cell types (SPEC section 1), decided on cell centres:
 The sensor layout (SPEC section 2, paper Fig. 2a) follows from the geometry, see
 :meth:`CylinderBenchmark.layout_groups`. The geometry helpers live in :mod:`dks_gym.benchmarks.layout`.
 
-The data generator is a later part of dks-gym: :meth:`~Benchmark.generate` raises GeneratorUnavailable.
+The data come from OpenFOAM's pimpleFoam, one run per Reynolds number: :meth:`CylinderBenchmark.generate`
+calls :func:`dks_gym.solvers.cylinder_case.generate_cylinder` (case set-up, spin-up detection, mesh study:
+docs/cfd.md).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from functools import cached_property
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from .base import Benchmark
+from .base import Benchmark, GeneratedData
 from .layout import (
     cell_centres,
     check_layout,
@@ -127,6 +132,42 @@ class CylinderBenchmark(Benchmark):
     def paper_layout(self, m: int = 16) -> np.ndarray:
         """The paper's layout (Fig. 2a): surface sensors, then wake sensors; see :meth:`layout_groups`."""
         return np.concatenate(list(self.layout_groups(m).values()))
+
+    def generate(
+        self,
+        preset: str = "paper",
+        *,
+        seed: int = 0,
+        workdir: Path | None = None,
+        progress: bool = True,
+        workers: int = 1,
+        executor: Any = None,
+        settings: Mapping[str, Any] | None = None,
+        keep_cases: bool = False,
+        **options: Any,
+    ) -> GeneratedData:
+        """Run the cylinder sweep for ``preset`` with OpenFOAM's pimpleFoam (paper: 90 + 11 runs, small: 3 + 2).
+
+        Calls :func:`dks_gym.solvers.cylinder_case.generate_cylinder` (details there and in docs/cfd.md):
+        OpenFOAM must be installed (otherwise :class:`~dks_gym.solvers.openfoam.OpenFOAMMissing`, a
+        GeneratorUnavailable, says how). Runs are cached under ``workdir`` so an interrupted generation
+        resumes. ``workers`` is the size of the process pool (1 runs in this process); ``executor`` is
+        any :class:`concurrent.futures.Executor` instead (e.g. ``dask.distributed.Client.get_executor()``,
+        whose workers must see ``workdir``). ``settings`` overrides solver settings of the preset;
+        ``keep_cases`` keeps every OpenFOAM case directory. Per-run series
+        (``lift``, ``drag``, ``t_start``) come back in ``extras``.
+        """
+        if options:
+            raise ValueError(
+                f"unknown option(s) for the {self.name} generator: {', '.join(sorted(options))}; "
+                "it accepts preset, seed, workdir, progress, workers, executor, settings and keep_cases"
+            )
+        from ..solvers.cylinder_case import generate_cylinder  # lazy: the solvers import this module
+
+        return generate_cylinder(
+            preset, seed, workdir, progress, workers=workers, executor=executor, benchmark=self,
+            settings=settings, keep_cases=keep_cases,
+        )  # fmt: skip
 
 
 CYLINDER = CylinderBenchmark(

@@ -14,17 +14,21 @@ Cell types (SPEC section 1), decided on cell centres:
 * 3 atmosphere: the top row without its two corner cells (the tutorial's open "atmosphere" patch);
 * 0 interior: everything else.
 
-The sensor layout (SPEC section 2) is :meth:`DambreakBenchmark.layout_groups`. The data generator is
-a later part of dks-gym: :meth:`~Benchmark.generate` raises GeneratorUnavailable.
+The sensor layout (SPEC section 2) is :meth:`DambreakBenchmark.layout_groups`. The data come from
+OpenFOAM's interFoam, one run per water viscosity: :meth:`DambreakBenchmark.generate` calls
+:func:`dks_gym.solvers.dambreak_case.generate_dambreak` (case set-up and validation: docs/cfd.md).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from functools import cached_property
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from .base import Benchmark
+from .base import Benchmark, GeneratedData
 from .layout import (
     cell_centres,
     check_layout,
@@ -130,6 +134,42 @@ class DambreakBenchmark(Benchmark):
     def paper_layout(self, m: int = 16) -> np.ndarray:
         """The paper's layout (Fig. 2b): bottom sensors by x, then obstacle sensors; see :meth:`layout_groups`."""
         return np.concatenate(list(self.layout_groups(m).values()))
+
+    def generate(
+        self,
+        preset: str = "paper",
+        *,
+        seed: int = 0,
+        workdir: Path | None = None,
+        progress: bool = True,
+        workers: int = 1,
+        executor: Any = None,
+        settings: Mapping[str, Any] | None = None,
+        keep_cases: bool = False,
+        **options: Any,
+    ) -> GeneratedData:
+        """Run the dambreak sweep for ``preset`` with OpenFOAM's interFoam (paper: 90 + 11 runs, small: 3 + 2).
+
+        Calls :func:`dks_gym.solvers.dambreak_case.generate_dambreak` (details there and in docs/cfd.md):
+        OpenFOAM must be installed (otherwise :class:`~dks_gym.solvers.openfoam.OpenFOAMMissing`, a
+        GeneratorUnavailable, says how). Runs are cached under ``workdir`` so an interrupted generation
+        resumes. ``workers`` is the size of the process pool (1 runs in this process); ``executor`` is
+        any :class:`concurrent.futures.Executor` instead (e.g. ``dask.distributed.Client.get_executor()``,
+        whose workers must see ``workdir``). ``settings`` overrides solver settings of the preset;
+        ``keep_cases`` keeps every OpenFOAM case directory. Per-run series
+        (``water_volume``, ``water_outflow``, ``surge_front``) come back in ``extras``.
+        """
+        if options:
+            raise ValueError(
+                f"unknown option(s) for the {self.name} generator: {', '.join(sorted(options))}; "
+                "it accepts preset, seed, workdir, progress, workers, executor, settings and keep_cases"
+            )
+        from ..solvers.dambreak_case import generate_dambreak  # lazy: the solvers import this module
+
+        return generate_dambreak(
+            preset, seed, workdir, progress, workers=workers, executor=executor, benchmark=self,
+            settings=settings, keep_cases=keep_cases,
+        )  # fmt: skip
 
 
 def _mirror_about_column(flat: list[int], grid: tuple[int, ...], centre: int) -> np.ndarray:
