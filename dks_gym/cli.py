@@ -30,9 +30,11 @@ def data() -> None:
               help="Output file (default: $DKS_GYM_HOME/data/BENCHMARK-PRESET.h5).")
 @click.option("--overwrite", is_flag=True, help="Regenerate even if the file exists.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
-              help="Parallel OpenFOAM runs for cylinder and dambreak (default 1); not for burgers.")
+              help="Parallel OpenFOAM runs for cylinder and dambreak (default 1).")
+@click.option("--device", default=None,
+              help="Torch device of the burgers and sphere solvers: cpu (default), cuda or cuda:N.")
 def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, overwrite: bool,
-                  workers: int | None) -> None:
+                  workers: int | None, device: str | None) -> None:
     """Generate BENCHMARK's dataset (burgers, cylinder, dambreak, sphere).
 
     The CFD benchmarks cache their OpenFOAM runs in FILE.work next to the output: an interrupted
@@ -44,11 +46,17 @@ def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, over
 
     benchmark = benchmark.lower()
     options = {}
+    openfoam = benchmark in ("cylinder", "dambreak")
     if workers is not None:
-        if benchmark == "burgers":
-            raise click.UsageError("--workers is for the OpenFOAM benchmarks (cylinder, dambreak); "
-                                   "burgers is one batched solve")
+        if not openfoam:
+            raise click.UsageError(f"--workers is for the OpenFOAM benchmarks (cylinder, dambreak); "
+                                   f"{benchmark} is one batched torch solve (see --device)")
         options["workers"] = workers
+    if device is not None:
+        if openfoam:
+            raise click.UsageError(f"--device is for the torch solvers (burgers, sphere); {benchmark} runs "
+                                   "OpenFOAM on the CPU (see --workers)")
+        options["device"] = device
     start = time.perf_counter()
     try:
         path = generate_dataset(benchmark, preset, path=out, seed=seed, overwrite=overwrite, **options)

@@ -261,3 +261,17 @@ def test_generate_dataset_removes_the_work_cache_only_after_success(tmp_path: Pa
     assert path.exists() and work.exists()
     generate_dataset(bench, "small", path=path, progress=False, overwrite=True)
     assert path.exists() and not work.exists()
+
+
+def test_cli_device_and_workers_options_go_to_the_right_generators(tmp_path: Path) -> None:
+    runner = CliRunner()
+    result = runner.invoke(main, ["data", "generate", "burgers", "--preset", "small", "--device", "cpu",
+                                  "--out", str(tmp_path / "b.h5")])
+    assert result.exit_code == 0, result.output
+    with Dataset(tmp_path / "b.h5") as ds:
+        assert ds.n_trajectories("train") == 6
+    result = runner.invoke(main, ["data", "generate", "cylinder", "--device", "cuda", "--out", str(tmp_path / "c.h5")])
+    assert result.exit_code == 2 and "--device is for the torch solvers" in result.output
+    result = runner.invoke(main, ["data", "generate", "sphere", "--workers", "2", "--out", str(tmp_path / "s.h5")])
+    assert result.exit_code == 2 and "--workers is for the OpenFOAM benchmarks" in result.output
+    assert not (tmp_path / "c.h5").exists() and not (tmp_path / "s.h5").exists()
