@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from ..benchmarks.base import Benchmark, GeneratedData, check_preset, interleaved_sweep
+from ..benchmarks.base import Benchmark, GeneratedData, check_preset
 from . import openfoam as of
 
 GENERATOR_VERSION = "1"
@@ -501,19 +501,9 @@ def generate_cylinder(
     """
     of.check_openfoam(("blockMesh", "pimpleFoam", "postProcess"))
     bench = benchmark or _benchmark()
-    conf = preset_settings(preset)
-    if settings:
-        unknown = set(settings) - set(conf)
-        if unknown:
-            raise ValueError(f"unknown cylinder setting(s) {sorted(unknown)}; known: {sorted(conf)}")
-        conf.update(settings)
+    conf = of.merge_settings("cylinder", preset_settings(preset), settings)
     check_settings(conf)
-    n_train, n_test = int(conf["n_train"]), int(conf["n_test"])
-    low, high = bench.param_range
-    train, test = interleaved_sweep(low, high, n_train, n_test, np.random.default_rng(seed))
-    runs = [of.Run("train", i, float(p)) for i, p in enumerate(train)] + [
-        of.Run("test", i, float(p)) for i, p in enumerate(test)
-    ]
+    train, test, runs = of.sweep_runs(bench, conf, seed)
     temporary = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="dks-cylinder-")) if temporary else Path(workdir)
     resampler = build_resampler(conf, workdir, bench)

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ..benchmarks.base import Benchmark, GeneratedData, check_preset, interleaved_sweep
+from ..benchmarks.base import Benchmark, GeneratedData, check_preset
 from . import openfoam as of
 
 GENERATOR_VERSION = "1"
@@ -418,21 +418,11 @@ def generate_dambreak(
     """
     of.check_openfoam(("blockMesh", "setFields", "interFoam", "postProcess"))
     bench = benchmark or _benchmark()
-    conf = preset_settings(preset)
-    if settings:
-        unknown = set(settings) - set(conf)
-        if unknown:
-            raise ValueError(f"unknown dambreak setting(s) {sorted(unknown)}; known: {sorted(conf)}")
-        conf.update(settings)
+    conf = of.merge_settings("dambreak", preset_settings(preset), settings)
     if not (float(conf["frame_dt"]) > 0 and int(conf["n_frames"]) >= 1 and 0 < float(conf["max_co"]) <= 5):
         raise ValueError(f"need frame_dt > 0, n_frames >= 1 and 0 < max_co <= 5, got {conf}")
     cell_counts(float(conf["cell_size"]))
-    n_train, n_test = int(conf["n_train"]), int(conf["n_test"])
-    low, high = bench.param_range
-    train, test = interleaved_sweep(low, high, n_train, n_test, np.random.default_rng(seed))
-    runs = [of.Run("train", i, float(p)) for i, p in enumerate(train)] + [
-        of.Run("test", i, float(p)) for i, p in enumerate(test)
-    ]
+    train, test, runs = of.sweep_runs(bench, conf, seed)
     temporary = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="dks-dambreak-")) if temporary else Path(workdir)
     resampler = build_resampler(conf, workdir, bench)

@@ -39,7 +39,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import Delaunay, cKDTree
 
-from ..benchmarks.base import GeneratedData, GeneratorUnavailable
+from ..benchmarks.base import GeneratedData, GeneratorUnavailable, interleaved_sweep
 
 #: Where Debian's ``openfoam`` package installs its data files; override with ``$WM_PROJECT_DIR``.
 DEFAULT_PROJECT_DIR = "/usr/share/openfoam"
@@ -412,6 +412,28 @@ class Run:
 
 #: ``simulate(param, case_dir, settings, resampler) -> {"fields": (n_t, C, *grid), other arrays...}``
 Simulate = Callable[[float, Path, Mapping[str, Any], Resampler], dict[str, np.ndarray]]
+
+
+def merge_settings(name: str, defaults: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> dict[str, Any]:
+    """A preset's solver settings with ``overrides`` applied; unknown keys are an error naming the known ones."""
+    conf = dict(defaults)
+    if overrides:
+        unknown = set(overrides) - set(conf)
+        if unknown:
+            raise ValueError(f"unknown {name} setting(s) {sorted(unknown)}; known: {sorted(conf)}")
+        conf.update(overrides)
+    return conf
+
+
+def sweep_runs(benchmark: Any, conf: Mapping[str, Any], seed: int) -> tuple[np.ndarray, np.ndarray, list[Run]]:
+    """The train and test parameters of a sweep (``interleaved_sweep`` over the benchmark's range with
+    ``default_rng(seed)``, ``conf["n_train"]`` / ``conf["n_test"]`` values) and its runs, train first."""
+    low, high = benchmark.param_range
+    train, test = interleaved_sweep(low, high, int(conf["n_train"]), int(conf["n_test"]), np.random.default_rng(seed))
+    runs = [Run("train", i, float(p)) for i, p in enumerate(train)] + [
+        Run("test", i, float(p)) for i, p in enumerate(test)
+    ]
+    return train, test, runs
 
 
 def run_key(name: str, settings: Mapping[str, Any], param: float) -> str:
