@@ -1,8 +1,10 @@
 """Accuracy and cost of the Burgers reference data: the shipped scheme against the Cole-Hopf solution.
 
 Writes JSON with (1) the error of the shipped resolution (nx = 1024, Courant 0.1, diffusive factor 0.45)
-at t = 0.495 for nu in {0.01, 0.1, 1.0}, (2) a grid-refinement table with observed orders and (3) the
-wall time of ``BURGERS.generate("paper")``. Run from the repository root:
+at t = 0.495 for nu in {0.01, 0.1, 1.0}, (2) a grid-refinement table with observed orders, (3) the
+wall time of ``BURGERS.generate("paper")`` and (4) checks of the reference itself: how much a finer
+quadrature changes the Cole-Hopf solution, its distance to an independent pseudo-spectral solver
+(Fourier collocation + DOP853), and the drift of the mean of u, which the exact solution conserves. Run from the repository root:
 
     OMP_NUM_THREADS=1 python benchmarks/burgers_convergence.py --out benchmarks/results/burgers_convergence.json
 """
@@ -37,6 +39,42 @@ def errors_against_exact(nx: int, t: float = T_FINAL) -> dict[str, dict[str, flo
     return out
 
 
+def pseudo_spectral(nu: float, t: float, nx: int) -> np.ndarray:
+    """A second, unrelated solver: Fourier collocation in x, 8th-order Runge-Kutta (DOP853) in t."""
+    from scipy.integrate import solve_ivp
+
+    from dks_gym.benchmarks.burgers import initial_condition
+
+    x = 2 * math.pi * np.arange(nx) / nx
+    k = np.fft.rfftfreq(nx, 1.0 / nx)
+
+    def rhs(_: float, u: np.ndarray) -> np.ndarray:
+        return np.fft.irfft(-0.5j * k * np.fft.rfft(u * u) - nu * k**2 * np.fft.rfft(u), nx)
+
+    return solve_ivp(rhs, (0.0, t), initial_condition(x), method="DOP853", rtol=1e-12, atol=1e-13).y[:, -1]
+
+
+def reference_checks(t: float = T_FINAL) -> dict[str, dict[str, float]]:
+    """Per viscosity: quadrature change of the exact solution, its gap to the pseudo-spectral solver, and the
+    shipped scheme's MSE against it and drift of the mean of u (nx = 1024)."""
+    out = {}
+    u = solve(np.array(NUS), np.array([0.0, t]), nx=1024)[:, -1]
+    x1024 = 2 * math.pi * np.arange(1024) / 1024
+    for i, nu in enumerate(NUS):
+        nx = {1.0: 64, 0.1: 512, 0.01: 2048}[nu]  # enough Fourier modes for each front
+        x = 2 * math.pi * np.arange(nx) / nx
+        exact = exact_solution(x, t, nu)
+        exact1024 = exact_solution(x1024, t, nu)
+        out[str(nu)] = {
+            "quadrature_change": float(np.abs(exact_solution(x, t, nu, refine=2.0) - exact).max()),
+            "pseudo_spectral_max_difference": float(np.abs(pseudo_spectral(nu, t, nx) - exact).max()),
+            "scheme_mse_nx1024": float(np.mean((u[i] - exact1024) ** 2)),
+            "scheme_mean_drift_nx1024": float(abs(u[i].mean())),
+        }
+        print(f"nu={nu}: {json.dumps(out[str(nu)])}", flush=True)
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/burgers_convergence.json"))
@@ -59,6 +97,7 @@ def main() -> None:
         if fine == 2 * coarse
     }
     shipped = refinement[1024] if 1024 in refinement else errors_against_exact(1024)
+    checks = reference_checks()
 
     # The machine may be shared: keep the fastest of a few runs and record the load.
     generate_seconds = []
@@ -74,6 +113,7 @@ def main() -> None:
         "t": T_FINAL,
         "scheme": {"courant": COURANT, "diffusive_factor": DIFFUSIVE_FACTOR},
         "shipped_nx1024": shipped,
+        "reference_checks": checks,
         "refinement": {str(nx): errs for nx, errs in refinement.items()},
         "observed_order": orders,
         "generate_paper_seconds": min(generate_seconds),

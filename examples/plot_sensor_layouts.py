@@ -1,11 +1,12 @@
-"""Draw the cell types and the paper's sensor layouts of the three CFD benchmarks (paper Fig. 2).
+"""Draw the paper's sensor layouts of the four benchmarks (paper Fig. 2): Burgers, and the cell types of the CFD ones.
 
     python examples/plot_sensor_layouts.py            # writes docs/figures/sensor_layouts.png
     python examples/plot_sensor_layouts.py --m 8 --out layouts8.png
 
-One column per benchmark: the cylinder, the dambreak, and the sphere's z = +dz/2 slice (the sphere's
-sensors are projected along z; each marker there stands for a +-z pair). The top row shows the whole
-domain, the bottom row the region around the body or obstacle (the box drawn on top) enlarged.
+Top: Burgers, the initial condition u0 = sin x + 0.5 cos 2x on the periodic grid with its sensors.
+Below, one column per CFD benchmark: the cylinder, the dambreak, and the sphere's z = +dz/2 slice (the
+sphere's sensors are projected along z; each marker there stands for a +-z pair). The middle row shows
+the whole domain, the bottom row the region around the body or obstacle (the box drawn on top) enlarged.
 """
 
 from __future__ import annotations
@@ -106,6 +107,23 @@ def column(top, bottom, name: str, m: int) -> None:
     bottom.legend(handles=handles, fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5), framealpha=0.9)
 
 
+def burgers_panel(ax, m: int) -> None:
+    """Burgers: u0 on the 1024-point periodic grid, the sensors marked on it."""
+    from dks_gym.benchmarks.burgers import initial_condition
+
+    bench = get_benchmark("burgers")
+    (x,) = bench.coords()
+    u0 = initial_condition(x)
+    sensors = bench.paper_layout(m)
+    ax.plot(x, u0, color="0.3", lw=1.2, label="u0 = sin x + 0.5 cos 2x")
+    ax.scatter(x[sensors], u0[sensors], s=36, marker="o", facecolor="#d62728", edgecolor="k", linewidth=0.6,
+               zorder=3, label=f"sensors ({m}, equidistant)")
+    ax.set(xlim=(0, 2 * np.pi), xlabel="x", ylabel="u")
+    ax.set_title(f"burgers, {m} sensors (indices {sensors[0]} + {sensors[1] - sensors[0]} k)", fontsize=10)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    ax.tick_params(labelsize=8)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--m", type=int, default=16, help="number of sensors (default 16, the paper's)")
@@ -113,10 +131,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=default_out, help="output image")
     args = parser.parse_args()
 
-    fig, axes = plt.subplots(2, 3, figsize=(18, 6.4), gridspec_kw={"width_ratios": [3, 1.6, 3]},
-                             layout="constrained")
+    fig, axes = plt.subplot_mosaic([["burgers"] * 3, ["t0", "t1", "t2"], ["b0", "b1", "b2"]], figsize=(18, 8.6),
+                                   gridspec_kw={"width_ratios": [3, 1.6, 3], "height_ratios": [0.7, 1, 1]},
+                                   layout="constrained")
+    burgers_panel(axes["burgers"], args.m)
     for j, name in enumerate(("cylinder", "dambreak", "sphere")):
-        column(axes[0, j], axes[1, j], name, args.m)
+        column(axes[f"t{j}"], axes[f"b{j}"], name, args.m)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=150)
     print(f"wrote {args.out}")

@@ -18,6 +18,8 @@ An episode ends with ``truncated=True`` when the last frame is reached: the flow
 
 from __future__ import annotations
 
+import numbers
+
 from typing import Any
 
 import gymnasium as gym
@@ -58,7 +60,8 @@ class SensingEnv(gym.Env):
             raise ValueError(f"unknown split {split!r}; choose 'train' or 'test'")
         if sensor_mode not in SENSOR_MODES:
             raise ValueError(f"unknown sensor_mode {sensor_mode!r}; choose 'fixed' or 'select'")
-        if not (isinstance(noise_level, (int, float)) and np.isfinite(noise_level) and noise_level >= 0):
+        if not (isinstance(noise_level, numbers.Real) and not isinstance(noise_level, bool)
+                and np.isfinite(noise_level) and noise_level >= 0):
             raise ValueError(f"noise_level must be a finite number >= 0, got {noise_level!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unsupported render_mode {render_mode!r}; choose 'rgb_array' or None")
@@ -129,7 +132,10 @@ class SensingEnv(gym.Env):
 
     def _check_action(self, action: Any) -> np.ndarray:
         if self.sensor_mode == "fixed":
-            if action is not None and not (np.ndim(action) == 0 and int(action) == 0):
+            fixed_ok = action is None or (
+                np.ndim(action) == 0 and np.issubdtype(np.asarray(action).dtype, np.integer) and int(action) == 0
+            )
+            if not fixed_ok:
                 raise ValueError(f"sensor_mode='fixed' takes action 0 (or None), got {action!r}")
             return self._sensors
         arr = np.asarray(action)
