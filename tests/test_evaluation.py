@@ -313,3 +313,112 @@ def test_missing_model_without_training_fails_clearly(home: Path, tmp_path: Path
                                                     "--out", str(tmp_path), "--no-train"])
     assert result.exit_code != 0
     assert "dks-gym train" in result.output and "r=16" in result.output
+
+
+# ------------------------------------------------------------------ the committed reproduce results
+
+RESULTS = Path(__file__).parents[1] / "docs" / "results"
+
+
+def _num(x: float | None) -> str:
+    """The tables' number format, written out here independently: 3 significant digits, e-notation outside
+    [1e-2, 1e3)."""
+    if x is None or not math.isfinite(x):
+        return "-"
+    return f"{x:.3g}" if 1e-2 <= abs(x) < 1e3 else f"{x:.2e}"
+
+
+def _cell(rec: dict | None) -> str:
+    if rec is None:
+        return "-"
+    if rec["final_mse_std"] is None:
+        return _num(rec["final_mse_mean"])
+    return f"{_num(rec['final_mse_mean'])} ± {_num(rec['final_mse_std'])}"
+
+
+def _section(tables: str, heading: str) -> list[list[str]]:
+    """Body rows (cells) of the markdown table under the '## heading...' line."""
+    lines = tables.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"## {heading}"))
+    rows = []
+    for line in lines[start + 1:]:
+        if line.startswith("## "):
+            break
+        if line.startswith("|") and not line.startswith("|---"):
+            rows.append([c.strip() for c in line.strip("|").split("|")])
+    return rows[1:]  # drop the header
+
+
+def _rec(doc: dict, **criteria) -> dict | None:
+    return next((r for r in doc["records"] if all(r.get(k) == v for k, v in criteria.items())), None)
+
+
+@pytest.mark.parametrize("name", ["burgers-lite", "burgers"])
+def test_committed_tables_regenerate_byte_for_byte(name: str) -> None:
+    from dks_gym.evaluation.reproduce import tables_markdown
+
+    doc = load_results(RESULTS / name / "results.json")
+    assert tables_markdown(doc) == (RESULTS / name / "tables.md").read_text()
+
+
+def test_committed_lite_results_every_experiment_in_tables_and_figures(tmp_path: Path) -> None:
+    """docs/results/burgers-lite: each ablation's table holds the numbers of its JSON records, and
+    write_figures draws one figure per experiment (the reconstruction needs the run's cache: not here)."""
+    from dks_gym.evaluation.reproduce import tables_markdown, write_figures
+
+    doc = load_results(RESULTS / "burgers-lite" / "results.json")
+    assert set(doc["config"]["experiments"]) == {"main", "enkf", "ensemble", "noise", "latent", "multistep",
+                                                 "operator_norm", "timing"}
+    (tmp_path / "tables.md").write_text(tables_markdown(doc))
+    tables = (tmp_path / "tables.md").read_text()
+    labels = {"koopman": "Koopman", "pdmd": "pDMD", "mlp": "MLP", "xlstm": "xLSTM"}
+    base = {"initial": "approximate", "noise": 0.2, "r": 32, "T": 1}
+
+    rows = _section(tables, "EnKF, n = 20 (Table VII)")
+    assert len(rows) == 5 and rows[4][:2] == ["Koopman", "EKF (reference)"]
+    for row, m in zip(rows, labels):
+        assert row[:4] == [labels[m], "rollout / EnKF", _cell(_rec(doc, experiment="enkf", model=m, filter="forward")),
+                           _cell(_rec(doc, experiment="enkf", model=m, filter="enkf", n_members=20))]
+    rows = _section(tables, "EnKF ensemble size (Table VIII)")
+    assert [r[0] for r in rows] == ["Koopman", "MLP", "xLSTM"]
+    for row, m in zip(rows, ("koopman", "mlp", "xlstm")):
+        assert row[1:4] == [_cell(_rec(doc, experiment="ensemble", model=m, filter="enkf", n_members=n))
+                            for n in (20, 40, 64)]
+    rows = _section(tables, "Measurement noise (Fig. 10)")
+    assert [r[0] for r in rows] == list(labels.values())
+    for row, m in zip(rows, labels):
+        for cell, s in zip(row[1:], (0.1, 0.2, 0.3)):
+            rec = _rec(doc, model=m, filter="ekf", **{**base, "noise": s})
+            ref = _rec(doc, model="mlp", filter="forward", **{**base, "noise": s})
+            assert cell == f"{_cell(rec)} ({rec['final_mse_mean'] / ref['final_mse_mean']:.3g})"
+    rows = _section(tables, "Latent dimension (Fig. 11)")
+    assert [(r[0], r[1]) for r in rows] == [(str(r), labels[m]) for r in (16, 32, 64) for m in labels]
+    for row in rows:
+        m = next(k for k, v in labels.items() if v == row[1])
+        crit = {**base, "r": int(row[0])}
+        assert row[2:4] == [_cell(_rec(doc, model=m, filter=f, **crit)) for f in ("forward", "ekf")]
+    rows = _section(tables, "Multi-step training (Fig. 13)")
+    assert [(r[0], r[1]) for r in rows] == [(str(t), labels[m]) for t in (1, 2, 4, 8) for m in ("koopman", "mlp")]
+    for row in rows:
+        m = "koopman" if row[1] == "Koopman" else "mlp"
+        crit = {**base, "T": int(row[0])}
+        assert row[2:4] == [_cell(_rec(doc, model=m, filter=f, **crit)) for f in ("forward", "ekf")]
+    rows = _section(tables, "Operator norm max_k ||F_k||_2")
+    assert [r[0] for r in rows] == list(labels.values())
+    for row, m in zip(rows, labels):
+        norms = [v for v in _rec(doc, model=m, filter="ekf", **base)["max_forecast_norm"] if v is not None]
+        assert row[:2] == [labels[m], f"{max(norms):.4f}"]
+    rows = _section(tables, "Wall time per DA step in ms")
+    assert [(r[0], r[1]) for r in rows] == [(i, labels[m]) for i in ("approximate", "exact") for m in labels]
+    for row in rows:
+        m = next(k for k, v in labels.items() if v == row[1])
+        for cell, f in zip(row[2:5], ("forward", "ekf", "enkf")):
+            rec = _rec(doc, experiment="timing", model=m, filter=f, initial=row[0])
+            assert cell == f"{1e3 * rec['da_step_seconds']:.3g}"
+
+    written = write_figures(doc, tmp_path / "figures")
+    names = {p.stem for p in written}
+    committed = {p.stem for p in (RESULTS / "burgers-lite" / "figures").glob("*.png")}
+    assert names == committed - {"reconstruction"}
+    assert names >= {"enkf", "ensemble", "noise", "latent", "multistep", "timing_approximate", "timing_exact"}
+    assert all(p.stat().st_size > 10_000 for p in written)

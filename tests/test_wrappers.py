@@ -172,3 +172,179 @@ def _final(env: gym.Env, trajectory: int) -> float:
         _, _, terminated, truncated, info = env.step(None)
         done = terminated or truncated
     return info["mse"]
+
+
+# ------------------------------------------------------------------------ independent re-computations
+
+
+def _mu(env: gym.Env) -> torch.Tensor:
+    return torch.tensor([env.unwrapped.mu], dtype=torch.float32)
+
+
+@pytest.mark.parametrize("kind", ["koopman", "mlp", "pdmd"])
+def test_initial_latent_recomputed_from_encode(models: dict, kind: str) -> None:
+    """approximate: mean over the train split of encode(first frame, mu); exact: encode(true x0, mu)."""
+    model = models[kind]
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf")
+    env.reset(seed=0, options={"trajectory": 1})
+    ds = env.unwrapped.dataset
+    first = torch.from_numpy(np.asarray(ds.fields("train")[:, 0], dtype=np.float32))
+    with torch.no_grad():
+        by_hand = model.encode(first, torch.from_numpy(np.asarray(ds.params("train"), dtype=np.float32))).mean(0)
+    torch.testing.assert_close(env.filter.mean[0], by_hand, rtol=1e-5, atol=1e-6)
+
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="none", initial="exact")
+    env.reset(seed=0, options={"trajectory": 1})
+    x0 = torch.from_numpy(np.asarray(ds.fields("test")[1, 0], dtype=np.float32))
+    np.testing.assert_array_equal(x0.numpy(), env.unwrapped.true_state)
+    with torch.no_grad():
+        by_hand = model.encode(x0[None], _mu(env))[0]
+    torch.testing.assert_close(env.filter.mean[0], by_hand, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["koopman", "mlp", "pdmd"])
+def test_observation_jacobian_is_autograd_of_decode_at_the_sensors(models: dict, kind: str) -> None:
+    """J the EKF uses = torch.autograd.functional.jacobian of z -> decode(z, mu)[sensor cells]."""
+    from dks_gym.filters.common import observe_with_jacobian
+
+    model = models[kind]
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf")
+    env.reset(seed=3)
+    env.step(None)
+    z = env.filter.mean.detach().clone()
+    sensors = torch.as_tensor(env.unwrapped.sensors)
+    mu = _mu(env)
+    _, J = observe_with_jacobian(env.filter.dynamics, z)
+    expected = torch.autograd.functional.jacobian(lambda v: model.decode(v[None], mu)[0, 0, sensors], z[0])
+    assert J.shape == (1, len(sensors), model.r)
+    torch.testing.assert_close(J[0], expected, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["koopman", "mlp"])
+def test_one_ekf_step_recomputed_by_hand(models: dict, kind: str) -> None:
+    """Forecast (Eq. 13-14) and update (Eq. 15-17) from autograd Jacobians equal the wrapper's first step."""
+    model = models[kind]
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf", P0=0.5, Q=1e-3)
+    env.reset(seed=4, options={"trajectory": 2})
+    z0 = env.filter.mean[0].detach().clone()
+    env.step(None)
+    base = gym.make("DKS/Burgers-v0", preset="small")  # the same readings, from an independent env
+    base.reset(seed=4, options={"trajectory": 2})
+    y, *_ = base.step(None)
+    mu, sensors = _mu(env), torch.as_tensor(env.unwrapped.sensors)
+    with torch.no_grad():
+        zf = model.forecast(z0[None], mu)[0]
+    F = torch.autograd.functional.jacobian(lambda v: model.forecast(v[None], mu)[0], z0)
+    Pf = 0.5 * F @ F.T + 1e-3 * torch.eye(model.r)
+    J = torch.autograd.functional.jacobian(lambda v: model.decode(v[None], mu)[0, 0, sensors], zf)
+    with torch.no_grad():
+        h = model.decode(zf[None], mu)[0, 0, sensors]
+    S = J @ Pf @ J.T + env.unwrapped.sigma ** 2 * torch.eye(len(sensors))
+    K = Pf @ J.T @ torch.linalg.inv(S)
+    za = zf + K @ (torch.as_tensor(y) - h)
+    Pa = (torch.eye(model.r) - K @ J) @ Pf
+    torch.testing.assert_close(env.filter.mean[0], za, rtol=1e-3, atol=1e-4)
+    torch.testing.assert_close(env.filter.cov[0], Pa, rtol=1e-3, atol=1e-5)
+
+
+def test_koopman_operator_computed_once_per_episode(models: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """For a fixed mu the Koopman K(mu) is built at reset and handed to the EKF as a constant tensor."""
+    model = models["koopman"]
+    calls = []
+    original = model.forecast_jacobian
+
+    def counting(z, mu):
+        calls.append(z.shape)
+        return original(z, mu)
+
+    monkeypatch.setattr(model, "forecast_jacobian", counting)
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf")
+    env.reset(seed=0)
+    for _ in range(10):
+        env.step(None)
+    assert len(calls) == 1
+    assert isinstance(env.filter.dynamics.forecast_jacobian, torch.Tensor)
+    env.reset(seed=1)
+    env.step(None)
+    assert len(calls) == 2
+
+
+@pytest.mark.parametrize("filt", ["ekf", "enkf"])
+def test_spread_and_wall_time_diagnostics(models: dict, filt: str) -> None:
+    """spread = sqrt(mean variance): of the ensemble (ddof 1) for the EnKF, of diag P for the EKF."""
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], filter=filt,
+                       n_members=8)
+    env.reset(seed=0)
+    for _ in range(5):
+        _, _, _, _, info = env.step(None)
+        if filt == "enkf":
+            E = env.filter.ensemble[0].numpy().astype(np.float64)
+            by_hand = np.sqrt(E.var(axis=0, ddof=1).mean())
+        else:
+            by_hand = np.sqrt(np.diag(env.filter.cov[0].numpy()).mean())
+        assert info["spread"] > 0
+        assert info["spread"] == pytest.approx(by_hand, rel=1e-5)
+    d = env.filter.diagnostics
+    assert len(d.wall_time) == 5 and all(0 < t < 10 for t in d.wall_time)
+    assert d.mean_wall_time == pytest.approx(sum(d.wall_time) / 5)
+    assert d.stacked("spread").shape == (5, 1) and d.assimilated == [True] * 5
+
+
+# ---------------------------------------------------------------------------------------- bad options
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    ({"P0": -1.0}, "P0"), ({"P0": 0.0}, "P0"), ({"P0": float("nan")}, "P0"),
+    ({"P0": torch.diag(torch.tensor([1.0, -1.0, 1, 1, 1, 1, 1, 1]))}, "P0"),
+    ({"P0": torch.eye(8) + torch.triu(torch.ones(8, 8), 1)}, "P0"),  # not symmetric
+    ({"Q": -1e-4}, "Q"), ({"Q": float("nan")}, "Q"), ({"Q": float("inf")}, "Q"),
+    ({"Q": torch.diag(torch.tensor([1.0, -1.0, 1, 1, 1, 1, 1, 1]))}, "Q"),
+    ({"n_members": 1, "filter": "enkf"}, "n_members"), ({"n_members": 2.5, "filter": "enkf"}, "n_members"),
+    ({"inflation": 0.9, "filter": "enkf"}, "inflation"), ({"inflation": float("nan")}, "inflation"),
+    ({"inflation": float("inf")}, "inflation"), ({"on_divergence": "ignore"}, "on_divergence"),
+])
+def test_bad_filter_options_raise_at_construction(models: dict, kwargs: dict, name: str) -> None:
+    """Refused when the wrapper (or the vector env) is built, not first at reset()."""
+    with pytest.raises(ValueError, match=name):
+        LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], **kwargs)
+    with pytest.raises(ValueError, match=name):
+        LatentFilterVectorEnv("burgers", 2, model=models["koopman"], preset="small", **kwargs)
+
+
+def test_valid_edge_options_are_accepted(models: dict) -> None:
+    """Q = 0 (PSD), n_members = 2, inflation = 1 and matrix P0/Q are valid."""
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], filter="enkf",
+                       Q=0.0, n_members=2, inflation=1.0, P0=torch.diag(torch.linspace(0.5, 1.0, 8)))
+    env.reset(seed=0)
+    env.step(None)
+    np.testing.assert_allclose(np.diag(env.filter.cov[0].numpy()) > 0, True)
+
+
+# --------------------------------------------------------------------------------- examples/ script
+
+
+def test_filter_burgers_example_runs_from_an_empty_data_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                              capsys: pytest.CaptureFixture) -> None:
+    """examples/filter_burgers.py on a fresh data home (small preset, 20-step trainings): generates the
+    data, trains the four models and prints forward/EKF/EnKF final-time MSE for each (~15 s)."""
+    import importlib.util
+
+    from dks_gym.benchmarks import burgers
+    from dks_gym.models import training
+
+    monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path / "home"))
+    monkeypatch.setitem(burgers.PRESET_COUNTS, "small", (4, 1))  # 1 test trajectory: 12 runs of 99 steps
+    monkeypatch.setitem(training.TRAINING_SCHEDULES["lite"], "burgers", training.TrainingSchedule(20, 8, 1e-3))
+    path = Path(__file__).parents[1] / "examples" / "filter_burgers.py"
+    spec = importlib.util.spec_from_file_location("filter_burgers_example", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main("small")
+    lines = capsys.readouterr().out.splitlines()
+    assert (tmp_path / "home" / "data" / "burgers-small.h5").exists()
+    header = next(i for i, line in enumerate(lines) if line.split() == ["model", "forward", "EKF", "EnKF"])
+    rows = {line.split()[0]: line.split()[1:] for line in lines[header + 1:]
+            if line.split() and line.split()[0] in ("koopman", "pdmd", "mlp", "xlstm")}
+    assert list(rows) == ["koopman", "pdmd", "mlp", "xlstm"]
+    for values in rows.values():
+        assert len(values) == 3 and all(np.isfinite(float(v)) and float(v) > 0 for v in values)

@@ -19,6 +19,7 @@ import torch
 from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
 from ..filters import EKF, EnKF, LatentDynamics, bind_param
+from ..filters.common import check_covariance_spec
 
 FILTERS = ("ekf", "enkf", "none")
 MODEL_KINDS = ("koopman", "pdmd", "mlp", "xlstm")
@@ -91,10 +92,12 @@ def model_dynamics(model: Any, mu: torch.Tensor, sensors: SensorRef, channel: st
 
 
 def resolve_model(model: Any, benchmark: str, *, r: int | None, preset: str, T: int, device: str,
-                  train_if_missing: bool) -> Any:
+                  train_if_missing: bool, dataset: Dataset | None = None) -> Any:
     """A model object, or load the cached checkpoint named by ``model`` ("koopman", "pdmd", "mlp", "xlstm").
 
     ``r`` (default 32 for names) must match a given model object's latent dimension when it is passed.
+    ``dataset``: the environment's dataset; a named checkpoint is looked up (and trained, with
+    ``train_if_missing``) for that dataset's preset, and must have been trained on it.
     """
     if isinstance(model, str):
         if model not in MODEL_KINDS:
@@ -102,7 +105,7 @@ def resolve_model(model: Any, benchmark: str, *, r: int | None, preset: str, T: 
         from ..models import load_model
 
         model = load_model(benchmark, model, r=32 if r is None else r, preset=preset, T=T, device=device,
-                           train_if_missing=train_if_missing)
+                           dataset=dataset, train_if_missing=train_if_missing)
     for attr in ("encode", "decode", "forecast", "forecast_jacobian", "observe", "benchmark", "r", "kind"):
         if not hasattr(model, attr):
             raise TypeError(f"model must provide {attr!r} (see dks_gym.models.LatentModel), got {type(model).__name__}")
@@ -139,6 +142,20 @@ class FilterConfig:
             raise ValueError(f"unknown filter {self.filter!r}; choose one of {', '.join(FILTERS)}")
         if self.initial not in INITIAL_CONDITIONS:
             raise ValueError(f"unknown initial condition {self.initial!r}; choose 'approximate' or 'exact'")
+        # Checked here, at construction, not first at reset(): the filter objects are only built then.
+        # P0 and Q are a variance (times I), or a (B,), (r, r) or (B, r, r) tensor (see dks_gym.filters.common).
+        check_covariance_spec(self.P0, "P0", definite=True)
+        check_covariance_spec(self.Q, "Q", definite=False)
+        n = self.n_members
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
+            raise ValueError(f"n_members must be an integer >= 2 (an ensemble needs two members "
+                             f"for a covariance), got {n!r}")
+        inflation = self.inflation
+        if isinstance(inflation, bool) or not isinstance(inflation, (int, float, np.floating, np.integer)) \
+                or not (1.0 <= float(inflation) < float("inf")):
+            raise ValueError(f"inflation must be a finite factor >= 1 (1.0 = none), got {inflation!r}")
+        if self.on_divergence not in ("raise", "reset"):
+            raise ValueError(f"on_divergence must be 'raise' or 'reset', got {self.on_divergence!r}")
 
     def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int) -> EKF | EnKF:
         """The filter object ("none" is the EKF loop run with the update off)."""

@@ -31,7 +31,8 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Assimilate a SensingEnv's readings into a latent model's state with an EKF, an EnKF or no update.
 
     ``model``: "koopman", "pdmd", "mlp", "xlstm" (a cached checkpoint of ``model_preset``, ``r``
-    (default 32) and multi-step horizon ``T``; ``train_if_missing=True`` trains it) or a model object.
+    (default 32) and multi-step horizon ``T``, trained on the env's dataset; ``train_if_missing=True`` trains
+    it) or a model object.
     ``filter``: "ekf", "enkf" or "none" (forward run). ``initial``: "approximate" (mean encoded first
     frame of the training trajectories) or "exact" (encode the true first frame). ``P0``, ``Q``: initial
     and process covariances (multiples of I); R = sigma^2 I from the env. EnKF: ``n_members``,
@@ -70,7 +71,7 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         config = FilterConfig(filter=filter, initial=initial, P0=P0, Q=Q, n_members=n_members,
                               inflation=inflation, on_divergence=on_divergence)
         self.model = resolve_model(model, base.benchmark.name, r=r, preset=model_preset, T=T, device=device,
-                                   train_if_missing=train_if_missing)
+                                   train_if_missing=train_if_missing, dataset=base.dataset)
         self.assimilator = LatentAssimilator(self.model, config, device=device, dtype=dtype)
         self.filter_kind = filter
         self.reward_kind = reward

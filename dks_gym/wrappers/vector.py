@@ -66,7 +66,7 @@ class LatentFilterVectorEnv(VectorEnv):
         self.envs = [SensingEnv(benchmark, **env_kwargs) for _ in range(num_envs)]
         self.benchmark = self.envs[0].benchmark
         self.model = resolve_model(model, self.benchmark.name, r=r, preset=model_preset, T=T, device=device,
-                                   train_if_missing=train_if_missing)
+                                   train_if_missing=train_if_missing, dataset=self.envs[0].dataset)
         self.assimilator = LatentAssimilator(self.model, config, device=device, dtype=dtype)
         self.num_envs = num_envs
         self.reward_kind = reward
