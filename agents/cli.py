@@ -51,9 +51,10 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
                                device: str, train_if_missing: bool, out: Path) -> None:
     """Rank sensor-placement POLICIES on BENCHMARK's test split with a latent filter in the loop.
 
-    Every policy is fitted on the training split, then run on all test trajectories with the same noise
-    realization; writes a ranked table (final-time and time-averaged MSE, mean and std across
-    trajectories, costs), a layout figure and a results JSON.
+    Every policy is fitted on the training split, then run on every episode (each test trajectory under each
+    of the NOISE_SEEDS noise realizations) with the same noise for all; writes a ranked table (final-time
+    and time-averaged MSE, mean and std across episodes, paired comparisons with the paper layout and with
+    the random layouts, costs), a layout figure and a results JSON.
     """
     from dks_gym.dataset import DatasetMissing, SchemaError
     from dks_gym.evaluation.results import ResultsError

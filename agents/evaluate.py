@@ -16,8 +16,13 @@ Outputs in ``out``:
   ``decision_seconds`` (wall time per decision: per episode for static layouts, per step and trajectory for
   adaptive ones) and ``policy_config``. A ``placement/forward`` record (no assimilation) is the reference.
 * ``placement.md``: the ranked table (by time-averaged MSE; frames 1..n_t-1, frame 0 being the same
-  initial estimate for all) with final-time and time-averaged MSE mean and std across trajectories, the
-  per-trajectory (paired) ratio to the paper layout, and the costs.
+  initial estimate for all) with final-time and time-averaged MSE mean and std across *episodes* (an
+  episode = one test trajectory under one noise seed, so the std mixes trajectory-to-trajectory and
+  noise-to-noise spread), the per-episode (paired) ratio to the paper layout, the paired comparison with
+  the random layouts (:func:`paired_vs_random`) and the costs.
+
+With random layouts in the run, every record also gets ``paired_vs_random`` (:func:`add_paired_vs_random`,
+which works on any results document, e.g. a committed ``placement.json``).
 * ``placement_layouts.png``: each policy's layout over a snapshot of the observed field.
 """
 
@@ -188,6 +193,77 @@ def placement_document(task: PlacementTask, results: Sequence[PolicyResult], for
                        [{"model": task.model.kind, "r": int(task.model.r), "preset": model_preset}])
 
 
+# Paired comparison with the random layouts -------------------------------------------------------------
+def paired_vs_random(doc: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per policy: its time-averaged MSE against the mean of the random layouts on the same episode.
+
+    For every episode e (trajectory x noise seed), ``q_e = log(MSE_policy(e) / mean_s MSE_random-s(e))``,
+    the mean over the run's seeded random layouts of the same episode (same trajectory, same noise); for a
+    ``random-s`` record the mean is over the *other* seeds. Returns ``{policy: {log_ratio_mean,
+    log_ratio_se, log_ratio_se_trajectories, ratio_mean, wins, n_episodes, n_random}}``: ``log_ratio_se`` =
+    std(q)/sqrt(episodes); ``log_ratio_se_trajectories`` the same over the per-trajectory means of q (the
+    noise seeds of one trajectory are not independent episodes, so this is the conservative one);
+    ``ratio_mean`` = mean of exp(q); ``wins`` = episodes where the policy's MSE is below the random mean.
+    ``log_ratio_geometric_mean``/``_se``: the same against the per-episode *geometric* mean of the random
+    layouts, i.e. the average paired log ratio against each random layout (the arithmetic mean is pulled up
+    by the worst random layouts, so a typical random layout itself scores below 0 against it).
+    Negative log ratios beat random. Empty without at least two random layouts. Works on any document
+    from :func:`placement_document` (e.g. a committed ``placement.json``), old ones included.
+    """
+    recs = [r for r in doc["records"] if r["experiment"].startswith("placement/")]
+    randoms = {r["policy"]: np.asarray(r["per_trajectory_time_mean_mse"], dtype=float)
+               for r in recs if r["policy"].startswith("random-")}
+    if len(randoms) < 2:
+        return {}
+    stack = np.stack(list(randoms.values()))
+    total = stack.sum(axis=0)
+    out: dict[str, dict[str, Any]] = {}
+    for rec in recs:
+        a = np.asarray(rec["per_trajectory_time_mean_mse"], dtype=float)
+        if a.shape != total.shape:
+            continue
+        own = randoms.get(rec["policy"])
+        ref = (total - own) / (len(randoms) - 1) if own is not None else total / len(randoms)
+        q = np.log(a / ref)
+        others = stack if own is None else np.stack([v for k, v in randoms.items() if k != rec["policy"]])
+        g = np.log(a) - np.log(others).mean(axis=0)  # against the geometric mean = mean paired log ratio per seed
+        n = len(q)
+        traj = np.asarray(rec.get("trajectories", np.arange(n)))
+        per_traj = np.array([q[traj == t].mean() for t in np.unique(traj)])
+        out[rec["policy"]] = {
+            "log_ratio_mean": float(q.mean()),
+            "log_ratio_se": float(q.std(ddof=1) / math.sqrt(n)) if n > 1 else None,
+            "log_ratio_se_trajectories": (float(per_traj.std(ddof=1) / math.sqrt(len(per_traj)))
+                                          if len(per_traj) > 1 else None),
+            "log_ratio_geometric_mean": float(g.mean()),
+            "log_ratio_geometric_se": float(g.std(ddof=1) / math.sqrt(n)) if n > 1 else None,
+            "ratio_mean": float(np.exp(q).mean()), "wins": int(np.sum(a < ref)), "n_episodes": n,
+            "n_trajectories": int(len(per_traj)), "n_random": len(randoms) - (own is not None),
+        }
+    return out
+
+
+def add_paired_vs_random(doc: dict[str, Any]) -> dict[str, Any]:
+    """Store :func:`paired_vs_random` in each record as ``paired_vs_random`` (in place); returns ``doc``."""
+    paired = paired_vs_random(doc)
+    for rec in doc["records"]:
+        if rec.get("policy") in paired:
+            rec["paired_vs_random"] = paired[rec["policy"]]
+    return doc
+
+
+def rewrite_tables(folder: str | Path) -> Path:
+    """Recompute ``paired_vs_random`` and ``placement.md`` of a finished run from its ``placement.json``
+    (no filter runs): ``python -c "from agents.evaluate import rewrite_tables; rewrite_tables('DIR')"``."""
+    from dks_gym.evaluation.results import load_results
+
+    folder = Path(folder)
+    doc = add_paired_vs_random(load_results(folder / "placement.json"))
+    save_results(doc, folder / "placement.json")
+    (folder / "placement.md").write_text(ranked_table(doc))
+    return folder / "placement.md"
+
+
 # Table -------------------------------------------------------------------------------------------------
 def _sci(x: float | None) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{x:.2e}"
@@ -206,9 +282,18 @@ def ranked_table(doc: dict[str, Any]) -> str:
     policies = sorted((r for r in recs if r["policy"] != "forward"), key=lambda r: r["time_mean_mse_mean"])
     paper = next((r for r in recs if r["policy"] == "paper"), None)
     forward = next((r for r in recs if r["policy"] == "forward"), None)
+    paired = paired_vs_random(doc)
     head = ("| rank | policy | time-avg MSE (mean ± std) | final MSE (mean ± std) | time-avg / paper, paired "
-            "(mean ± std) | better than paper | offline cost | per decision |")
-    lines = [head, "|" + "---|" * 8]
+            "(mean ± std) | better than paper | log(MSE / random mean), paired (mean ± s.e.) | "
+            "better than random mean | offline cost | per decision |")
+    lines = [head, "|" + "---|" * 10]
+
+    def random_cells(rec: dict[str, Any]) -> tuple[str, str]:
+        p = paired.get(rec["policy"])
+        if p is None:
+            return "-", "-"
+        se = "-" if p["log_ratio_se"] is None else f"{p['log_ratio_se']:.3f}"
+        return f"{p['log_ratio_mean']:+.3f} ± {se}", f"{p['wins']}/{p['n_episodes']}"
 
     def ratio_cells(rec: dict[str, Any]) -> tuple[str, str]:
         if paper is None:
@@ -222,16 +307,18 @@ def ranked_table(doc: dict[str, Any]) -> str:
     for i, rec in enumerate(policies, 1):
         kind = " (adaptive)" if rec.get("adaptive") else ""
         ratio, wins = ratio_cells(rec)
+        lr, lw = random_cells(rec)
         lines.append(
             f"| {i} | {rec['policy']}{kind} | {_sci(rec['time_mean_mse_mean'])} ± {_sci(rec['time_mean_mse_std'])} | "
-            f"{_sci(rec['final_mse_mean'])} ± {_sci(rec['final_mse_std'])} | {ratio} | {wins} | "
+            f"{_sci(rec['final_mse_mean'])} ± {_sci(rec['final_mse_std'])} | {ratio} | {wins} | {lr} | {lw} | "
             f"{_cost(rec.get('offline_seconds'), 1, ' s')} | {_cost(rec.get('decision_seconds'), 1e3, ' ms')} |"
         )
     if forward is not None:
         ratio, wins = ratio_cells(forward)
+        lr, lw = random_cells(forward)
         lines.append(f"| - | forward run (no sensors) | {_sci(forward['time_mean_mse_mean'])} ± "
                      f"{_sci(forward['time_mean_mse_std'])} | {_sci(forward['final_mse_mean'])} ± "
-                     f"{_sci(forward['final_mse_std'])} | {ratio} | {wins} | - | - |")
+                     f"{_sci(forward['final_mse_std'])} | {ratio} | {wins} | {lr} | {lw} | - | - |")
     randoms = [r["time_mean_mse_mean"] for r in recs if r["policy"].startswith("random-")]
     cfg = doc["config"]
     notes = [
@@ -240,14 +327,23 @@ def ranked_table(doc: dict[str, Any]) -> str:
         f"m={cfg['n_sensors']}, noise level {cfg['noise_level']:g}; {cfg['n_episodes']} test episodes = "
         f"{cfg['n_test']} trajectories x {len(cfg['noise_seeds'])} noise seed(s) {cfg['noise_seeds']}, "
         f"{cfg['n_frames']} frames each. MSE in physical units over the scored channels; std = sample std "
-        "across episodes; paired ratio = per-episode time-averaged MSE divided by the paper layout's on the "
-        "same trajectory and noise. Offline cost = fitting on the "
+        "across episodes (trajectory x noise seed: it mixes how hard the trajectories are with the noise); "
+        "paired ratio = per-episode time-averaged MSE divided by the paper layout's on the "
+        "same trajectory and noise. Paired vs random: per episode, log of the policy's time-averaged MSE over "
+        "the mean of the random layouts' on the same episode (for a random-s row, the other seeds), mean ± "
+        "standard error (std / sqrt(episodes)); negative = better than random; 'better than random mean' "
+        "counts those episodes. Offline cost = fitting on the "
         "training split (incl. RL training, also when loaded from a checkpoint); per decision = one layout "
         "(static: per episode; adaptive: per step and trajectory).",
     ]
     if len(randoms) > 1:
+        own = [p["log_ratio_mean"] for k, p in paired.items() if k.startswith("random-")]
         notes.append(f"Random layouts ({len(randoms)} seeds): time-averaged MSE {np.mean(randoms):.2e} ± "
-                     f"{np.std(randoms, ddof=1):.2e} (mean ± std over seeds).")
+                     f"{np.std(randoms, ddof=1):.2e} (mean ± std over seeds); their own paired log ratios "
+                     f"against the other seeds' mean average {np.mean(own):+.3f} (the arithmetic mean is pulled "
+                     "up by the worst layouts), the bar a policy must clear to beat a typical random layout; "
+                     "placement.json also holds the log ratio against the geometric mean "
+                     "(paired_vs_random.log_ratio_geometric_mean), for which that bar is 0.")
     return "\n".join(lines + notes) + "\n"
 
 
@@ -370,8 +466,8 @@ def evaluate_placement(
     forward = run_layouts(task.model, task.dataset, static if static is not None else
                           np.repeat(task.benchmark.paper_layout(task.n_sensors)[None], len(index), 0),
                           index, replace(task.config, filter="forward"), noise_seeds=episode_seeds)
-    doc = placement_document(task, results, forward, model_preset=model_preset,
-                             wall_time=time.perf_counter() - start)
+    doc = add_paired_vs_random(placement_document(task, results, forward, model_preset=model_preset,
+                                                  wall_time=time.perf_counter() - start))
     if out is not None:
         save_results(doc, out / "placement.json")
         (out / "placement.md").write_text(ranked_table(doc))

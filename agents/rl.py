@@ -140,7 +140,9 @@ def _plain(obj: Any) -> Any:
 
 def trainer_command(help_text: str, timesteps: int, n_envs: int):
     """A click command with the options both agent trainers share; the decorated function gets the loaded
-    ``PlacementTask`` and the training settings (timesteps, n_envs, n_candidates, seed, out)."""
+    ``PlacementTask`` and the training settings (timesteps, n_envs, n_candidates, seed, out).
+    ``--train-if-missing`` trains the latent model first when its checkpoint is missing (lite: about a
+    minute on one core for Burgers); without it a missing checkpoint is a clear error."""
     import click
 
     def wrap(train: Any) -> Any:
@@ -155,13 +157,22 @@ def trainer_command(help_text: str, timesteps: int, n_envs: int):
         @click.option("--n-candidates", type=int, default=32, show_default=True)
         @click.option("--n-sensors", type=int, default=16, show_default=True)
         @click.option("--seed", type=int, default=0, show_default=True)
+        @click.option("--train-if-missing", is_flag=True,
+                      help="Train the latent model (PRESET on DATA_PRESET) when its checkpoint is missing.")
         @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True)
         def command(benchmark: str, model: str, filter_: str, preset: str, data_preset: str, timesteps: int,
-                    n_envs: int, n_candidates: int, n_sensors: int, seed: int, out: Path) -> None:
+                    n_envs: int, n_candidates: int, n_sensors: int, seed: int, train_if_missing: bool,
+                    out: Path) -> None:
+            from dks_gym.models.checkpoint import CheckpointMissing
+
             from .policies import PlacementTask
 
-            task = PlacementTask.load(benchmark, model, model_preset=preset, data_preset=data_preset,
-                                      filter=filter_, n_sensors=n_sensors, seed=seed)
+            try:
+                task = PlacementTask.load(benchmark, model, model_preset=preset, data_preset=data_preset,
+                                          filter=filter_, n_sensors=n_sensors, seed=seed,
+                                          train_if_missing=train_if_missing)
+            except CheckpointMissing as exc:
+                raise click.ClickException(f"{exc} (pass --train-if-missing to train it here)") from exc
             click.echo(train(task, timesteps=timesteps, n_envs=n_envs, n_candidates=n_candidates, seed=seed,
                              out=out))
 

@@ -270,6 +270,8 @@ def test_evaluate_placement_writes_a_ranked_valid_results_file(burgers_task, tmp
               line.split("|")[1].strip().isdigit()]
     assert ranked == sorted(ranked, key=lambda p: recs[p]["time_mean_mse_mean"])
     assert (tmp_path / "placement_layouts.png").stat().st_size > 10_000
+    assert recs["qr"]["paired_vs_random"]["n_episodes"] == 6 and recs["random-0"]["paired_vs_random"]["n_random"] == 1
+    assert "log(MSE / random mean)" in table
 
     env = LatentFilter(gym.make("DKS/Burgers-v0", data_path=str(burgers_task.dataset.path)), model=burgers_task.model)
     env.reset(options={"trajectory": 2, "noise_seed": 7})
@@ -325,6 +327,7 @@ def test_trainer_command_lines_write_checkpoint_and_curve(kind: str, burgers_tas
                      "--out", str(tmp_path)])
     assert exit_info.value.code == 0
     assert captured["n_sensors"] == 4 and captured["seed"] == 3 and captured["model_preset"] == "lite"
+    assert captured["train_if_missing"] is False
     for suffix in (".zip", ".json", "_curve.png"):
         assert (tmp_path / f"{kind}{suffix}").exists()
     assert f"wrote {tmp_path}" in capsys.readouterr().out
@@ -351,3 +354,71 @@ def test_custom_policy_objects_are_ranked_beside_named_ones(burgers_task, tmp_pa
         make_policies([Clustered(), Clustered()])
     with pytest.raises(ValueError, match="unknown policies"):
         make_policies("paper,best")
+
+
+def test_paired_vs_random_from_a_results_document(tmp_path: Path) -> None:
+    """The paired comparison with the random layouts: per-episode log ratio to the random mean (the other
+    seeds' for a random row), its standard error, the geometric variant and the wins, from JSON alone."""
+    from agents.evaluate import paired_vs_random, ranked_table
+
+    def rec(policy, values, trajectories=(0, 1, 0, 1)):
+        return {"experiment": f"placement/{policy}", "policy": policy, "per_trajectory_time_mean_mse": list(values),
+                "trajectories": list(trajectories), "time_mean_mse_mean": float(np.mean(values)),
+                "time_mean_mse_std": float(np.std(values, ddof=1)), "final_mse_mean": 1.0, "final_mse_std": 0.0}
+
+    r0, r1, qr = [1.0, 2.0, 1.0, 4.0], [3.0, 2.0, 1.0, 2.0], [1.0, 1.0, 2.0, 1.0]
+    doc = {"benchmark": "burgers", "records": [rec("random-0", r0), rec("random-1", r1), rec("qr", qr)],
+           "config": {"model": "koopman", "model_preset": "lite", "r": 4, "filter": "ekf", "n_sensors": 4,
+                      "noise_level": 0.2, "n_episodes": 4, "n_test": 2, "noise_seeds": [0, 1], "n_frames": 5}}
+    paired = paired_vs_random(doc)
+    q = np.log(np.array(qr) / ((np.array(r0) + np.array(r1)) / 2))
+    assert paired["qr"]["log_ratio_mean"] == pytest.approx(q.mean())
+    assert paired["qr"]["log_ratio_se"] == pytest.approx(q.std(ddof=1) / 2)
+    assert paired["qr"]["wins"] == int(np.sum(q < 0)) == 3 and paired["qr"]["n_random"] == 2
+    per_traj = [q[[0, 2]].mean(), q[[1, 3]].mean()]
+    assert paired["qr"]["log_ratio_se_trajectories"] == pytest.approx(np.std(per_traj, ddof=1) / np.sqrt(2))
+    g = np.log(qr) - (np.log(r0) + np.log(r1)) / 2
+    assert paired["qr"]["log_ratio_geometric_mean"] == pytest.approx(g.mean())
+    assert paired["random-0"]["log_ratio_mean"] == pytest.approx(np.log(np.array(r0) / r1).mean())  # leave-one-out
+    assert paired["random-0"]["n_random"] == 1
+    assert f"{q.mean():+.3f}" in ranked_table(doc) and "3/4" in ranked_table(doc)
+    doc["records"] = doc["records"][1:]
+    assert paired_vs_random(doc) == {}  # one random layout is no reference
+
+
+@pytest.fixture(scope="module")
+def cfd_tasks_m16(tmp_path_factory: pytest.TempPathFactory) -> dict[str, PlacementTask]:
+    """The synthetic CFD files with 2 x 10 training snapshots (19 POD modes, enough for QR with m = 16)."""
+    folder = tmp_path_factory.mktemp("agents_cfd_m16")
+    tasks = {}
+    for bench in CFD:
+        ds = Dataset(_noisy_synthetic(bench, folder / f"{bench}.h5", n_t=10))
+        model = build_model(bench, "koopman", r=4, preset="lite", dataset=ds, seed=0)
+        tasks[bench] = PlacementTask(ds, model, AssimilationConfig(n_sensors=16))
+    return tasks
+
+
+@pytest.mark.parametrize("bench", CFD)
+def test_m16_layouts_on_cfd_geometries_and_their_figure(bench: str, cfd_tasks_m16, tmp_path: Path) -> None:
+    """The paper's m = 16 on the cylinder, dambreak and sphere grids: every static baseline gives 16 distinct
+    fluid cells (never the cylinder, obstacle or sphere), the harness ranks them, and the 2D/3D layout
+    figure (3D: mid-plane) is drawn."""
+    from agents.evaluate import evaluate_placement
+
+    task = cfd_tasks_m16[bench]
+    fluid = task.fluid_mask.ravel()
+    assert (~fluid).any()  # each geometry has cells a sensor must never take
+    lattice = candidate_lattice(task, 32)
+    policies = [PaperLayout(), RandomLayout(0), RandomLayout(1), QRLayout(),
+                GreedyLayout("trace", candidates=lattice, n_trajectories=1)]
+    for policy in policies:
+        layout = policy.fit(task).layout
+        check_layout(task, layout)
+        assert layout.shape == (16,) and len(set(layout.tolist())) == 16 and fluid[layout].all(), policy.name
+    doc, results = evaluate_placement(bench, policies, task=task, out=tmp_path, log=lambda _: None)
+    assert {r.name for r in results} == {"paper", "random-0", "random-1", "qr", "greedy-trace"}
+    assert all(len(r["sensors"]) == 16 for r in doc["records"] if r["policy"] != "forward")
+    qr = next(r for r in doc["records"] if r["policy"] == "qr")
+    assert qr["paired_vs_random"]["n_random"] == 2
+    assert (tmp_path / "placement_layouts.png").stat().st_size > 10_000
+    assert "log(MSE / random mean)" in (tmp_path / "placement.md").read_text()
