@@ -95,6 +95,8 @@ def main() -> None:
     parser.add_argument("--spin-up", type=float, default=None, help="override the preset's minimum spin-up (R/U)")
     parser.add_argument("--spin-up-max", type=float, default=None, help="override the preset's maximum spin-up (R/U)")
     parser.add_argument("--frames", type=int, default=None, help="override the preset's frame count")
+    parser.add_argument("--wall-cell", type=float, default=None,
+                        help="override the preset's first radial cell at the cylinder (R; refine divides it)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--workdir", type=Path, default=Path("cylinder-mesh-study.work"))
     parser.add_argument("--spin-up-check", type=float, nargs="*", default=[])
@@ -112,6 +114,8 @@ def main() -> None:
         base["spin_up"] = args.spin_up
     if args.spin_up_max is not None:
         base["spin_up_max"] = args.spin_up_max
+    if args.wall_cell is not None:
+        base["wall_cell"] = args.wall_cell
     cc.check_settings(base)
     if args.frames is not None:
         base["n_frames"] = args.frames

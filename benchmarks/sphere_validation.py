@@ -92,6 +92,57 @@ def turek_2d1(d: int, steps: int, device: str = "cpu", compile: bool = True) -> 
             "Cd_error": cd / 5.5795 - 1.0, "seconds": sec}
 
 
+def cylinder_2d(resolution: int, reynolds: float, spin_up: float, record: float, *, u_lattice: float = 0.05,
+                smagorinsky: float = 0.15, device: str = "cpu", compile: bool = True) -> dict:
+    """The 2D solver (D2Q9) on the cylinder benchmark's own case, to set beside its OpenFOAM data.
+
+    Same geometry, units and faces as :mod:`dks_gym.solvers.cylinder_case`: x in [-8R, 16R], y in [-4R, 4R],
+    cylinder of radius R at the origin, uniform inflow U, no-slip walls at y = +-4R (half-way bounce-back
+    exactly on them), pressure outlet behind the same absorbing layer as the sphere case (4R beyond x = 16R).
+    ``resolution`` nodes per R; impulsive start plus a v bump behind the body; the lift and drag
+    (C = F / (1/2 rho U^2 D) per unit depth, as OpenFOAM's forceCoeffs) are sampled every 0.1 R/U over the
+    last ``record`` R/U after ``spin_up``; St from the mean period between upward zero crossings of the lift,
+    the same estimate as the OpenFOAM mesh study (:func:`dks_gym.solvers.cylinder_case.strouhal`).
+    """
+    from dks_gym.solvers import cylinder_case as cc
+    from dks_gym.solvers import lbm
+
+    r = int(resolution)
+    sponge = 4.0
+    x = -8.0 + np.arange(round((24 + sponge) * r) + 1) / r
+    y = -4.0 + (np.arange(8 * r + 2) - 0.5) / r
+    body = x[:, None] ** 2 + y[None, :] ** 2 < 1.0
+    solid = body.copy()
+    solid[:, [0, -1]] = True
+    shape = solid.shape
+    absorber = 0.05 * np.clip((x - 16.0) / sponge, 0.0, 1.0) ** 2
+    nu = u_lattice * 2.0 * r / reynolds
+    sim = lbm.LBM("D2Q9", shape, [nu], solid=solid, body=body, inlet_velocity=(u_lattice, 0.0), outlet=True,
+                  absorber=absorber, smagorinsky=smagorinsky, device=device, compile=compile)
+    u0 = np.zeros((2, *shape), np.float32)
+    u0[0] = u_lattice
+    u0[1] = 0.5 * u_lattice * np.exp(-((x[:, None] - 3.0) ** 2 + y[None, :] ** 2))
+    sim.initialize(u0)
+    per_sample = round(0.1 * r / u_lattice)  # lattice steps per 0.1 R/U
+    dt_sample = per_sample * u_lattice / r
+    t0 = time.perf_counter()
+    sim.step(round(spin_up / dt_sample) * per_sample)
+    samples = []
+    for _ in range(round(record / dt_sample)):
+        sim.step(per_sample)
+        samples.append(sim.body_force()[0].cpu().numpy() / (0.5 * u_lattice**2 * 2 * r))
+    if not bool(sim.is_finite().all()):
+        raise RuntimeError(f"the D2Q9 cylinder run diverged at Re = {reynolds}, resolution {r}")
+    sec = time.perf_counter() - t0
+    c = np.array(samples)
+    st, cd = cc.strouhal(c[:, 1], dt_sample), float(c[:, 0].mean())
+    print(f"D2Q9 cylinder, Re {reynolds:g}, r = {r} ({shape[0]} x {shape[1]} nodes, Cs {smagorinsky}): "
+          f"St {st:.4f}, mean Cd {cd:.4f}, Cl amplitude {np.ptp(c[:, 1]) / 2:.3f} ({sec:.0f} s)", flush=True)
+    return {"Re": reynolds, "resolution": r, "shape": list(shape), "u_lattice": u_lattice, "smagorinsky": smagorinsky,
+            "spin_up": spin_up, "record": record, "St": st, "Cd": cd, "Cl_amplitude": float(np.ptp(c[:, 1]) / 2),
+            "seconds": sec, "lattice_updates": float(np.prod(shape)) * sim.time}
+
+
 def plot(results: Path, out: Path) -> None:
     """Figure from the JSON files: Cd vs resolution at Re 100 and the lift series at Re 350 and 700."""
     import matplotlib
@@ -144,6 +195,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--turek", type=int, nargs="*", default=None,
                     help="instead: the 2D solver on the Schafer-Turek 2D-1 cylinder at these diameters (nodes)")
+    ap.add_argument("--cylinder", type=int, nargs="*", default=None,
+                    help="instead: the 2D solver on the cylinder benchmark's case at these resolutions (nodes per R), "
+                         "at the first --re, spin-up --time, recording --average R/U (default 50)")
     ap.add_argument("--plot", type=Path, default=None, help="instead: draw the figure from benchmarks/results into PATH")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -155,6 +209,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.out is not None:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(json.dumps({"case": "Schafer-Turek 2D-1", "rows": rows}, indent=1))
+            print(f"wrote {args.out}")
+        return 0
+    if args.cylinder:
+        record = args.average if args.average is not None else 50.0
+        rows = [cylinder_2d(r, args.re[0], args.time, record, u_lattice=args.u_lattice, smagorinsky=args.smagorinsky,
+                            device=args.device, compile=args.compile) for r in args.cylinder]
+        if args.out is not None:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps({"case": "cylinder benchmark, D2Q9", "rows": rows}, indent=1))
             print(f"wrote {args.out}")
         return 0
     bench = get_benchmark("sphere")
