@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
-from dks_gym.benchmarks.burgers import BURGERS, exact_solution, initial_condition, solve
+from dks_gym.benchmarks.burgers import BURGERS, exact_solution, initial_condition, pseudo_spectral_solution, solve
 
 NUS = (0.01, 0.1, 1.0)
 
@@ -69,22 +68,9 @@ def test_exact_solution_conserves_the_mean(nu: float) -> None:
     assert abs(exact_solution(grid(4096), 0.25, nu).mean()) < 1e-12
 
 
-def _pseudo_spectral(nu: float, t: float, nx: int) -> tuple[np.ndarray, np.ndarray]:
-    """A second, unrelated solver: Fourier collocation in x, 8th-order Runge-Kutta (DOP853) in t."""
-    x = grid(nx)
-    k = np.fft.rfftfreq(nx, 1.0 / nx)
-
-    def rhs(_: float, u: np.ndarray) -> np.ndarray:
-        return np.fft.irfft(-0.5j * k * np.fft.rfft(u * u) - nu * k**2 * np.fft.rfft(u), nx)
-
-    sol = solve_ivp(rhs, (0.0, t), initial_condition(x), method="DOP853", rtol=1e-12, atol=1e-13)
-    assert sol.success
-    return x, sol.y[:, -1]
-
-
 @pytest.mark.parametrize(("nu", "nx"), ((1.0, 64), (0.1, 512), (0.01, 2048)))
 def test_exact_solution_matches_pseudo_spectral_solver(nu: float, nx: int) -> None:
-    x, u = _pseudo_spectral(nu, 0.495, nx)
+    x, u = pseudo_spectral_solution(nu, 0.495, nx)
     assert np.abs(exact_solution(x, 0.495, nu) - u).max() < 1e-10
 
 
