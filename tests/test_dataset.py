@@ -98,6 +98,9 @@ def test_file_written_elsewhere_loads_unchanged(tmp_path: Path) -> None:
         (lambda f: f.__delitem__("stats/std"), "stats/std"),
         (lambda f: (f.__delitem__("train/fields"), f.create_dataset("train/fields", data=np.zeros((2, 3, 1, 512), "f4"))), "train/fields"),
         (lambda f: (f.__delitem__("test/params"), f.create_dataset("test/params", data=np.zeros(5))), "test/params"),
+        (lambda f: f.attrs.__setitem__("observed_channel", "p"), "observed_channel"),
+        (lambda f: f.attrs.__setitem__("scored_channels", ["u", "w"]), "scored_channels"),
+        (lambda f: (f.__delitem__("train/fields"), f.create_dataset("train/fields", data=np.zeros((2, 4, 1, 1024), "i4"))), "train/fields"),
     ],
 )
 def test_malformed_files_are_rejected_naming_the_item(tmp_path: Path, mutate, item: str) -> None:
@@ -113,6 +116,15 @@ def test_cfd_file_without_cell_type_is_rejected(make_synthetic) -> None:
     path = make_synthetic("dambreak")
     with h5py.File(path, "a") as f:
         del f["cell_type"]
+    with pytest.raises(SchemaError, match="cell_type"):
+        Dataset(path)
+
+
+def test_cfd_file_with_a_wrong_cell_type_shape_is_rejected(make_synthetic) -> None:
+    path = make_synthetic("cylinder")
+    with h5py.File(path, "a") as f:
+        del f["cell_type"]
+        f.create_dataset("cell_type", data=np.zeros((64, 32), np.int8))
     with pytest.raises(SchemaError, match="cell_type"):
         Dataset(path)
 
@@ -164,6 +176,29 @@ def test_lock_keeps_a_second_writer_out(tmp_path: Path) -> None:
         with pytest.raises(RuntimeError, match="another process is writing"):
             write_dataset(synthetic_data("burgers"), "burgers", target, lock_timeout=0.1)
     assert not target.exists()
+
+
+def test_lock_held_by_another_process_keeps_the_writer_out(tmp_path: Path) -> None:
+    """The lock is an OS file lock, so it also excludes a second process, not only a second thread."""
+    import subprocess
+    import sys
+
+    target = tmp_path / "locked.h5"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from filelock import FileLock; lock = FileLock(sys.argv[1]); "
+         "lock.acquire(); print('held', flush=True); time.sleep(60)", str(target) + ".lock"],
+        stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(RuntimeError, match="another process is writing"):
+            write_dataset(synthetic_data("burgers"), "burgers", target, lock_timeout=0.2)
+        assert not target.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    write_dataset(synthetic_data("burgers"), "burgers", target, lock_timeout=5)  # released with the process
+    assert Dataset(target).n_trajectories("train") == 2
 
 
 def test_unwritable_data_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -34,6 +34,22 @@ def test_burgers_env_passes_check_env(burgers_small: Path) -> None:
     check_env(gym.make("DKS/Burgers-v0", preset="small", sensor_mode="select").unwrapped)
 
 
+def test_fresh_data_home_generate_then_default_make_passes_check_env(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The issue's path on a fresh machine: `dks-gym data generate burgers`, then the default gym.make."""
+    from click.testing import CliRunner
+
+    from dks_gym.cli import main
+
+    monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path))
+    result = CliRunner().invoke(main, ["data", "generate", "burgers"])
+    assert result.exit_code == 0, result.output
+    env = gym.make("DKS/Burgers-v0")
+    assert env.unwrapped.dataset.path == tmp_path / "data" / "burgers-paper.h5"
+    assert env.unwrapped.dataset.n_trajectories("train") == 50 and env.unwrapped.dataset.n_trajectories("test") == 10
+    check_env(env.unwrapped)
+
+
 def test_episode_walks_every_frame_and_truncates(burgers_small: Path) -> None:
     env = gym.make("DKS/Burgers-v0", preset="small")
     obs, infos = _episode(env, seed=0)
