@@ -152,16 +152,19 @@ def plot(results: Path, out: Path) -> None:
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
     rs, cds = [], []
-    for r in (3, 4, 5):
-        f = results / f"sphere_validation_nowalls_re100_r{r}.json"
-        if f.exists():
-            rs.append(r)
-            cds.append(json.loads(f.read_text())["rows"][0]["Cd"])
+    for r in (3, 4, 5, 8):
+        for f in (results / f"sphere_validation_nowalls_re100_r{r}.json", results / f"sphere_validation_nowalls_r{r}.json"):
+            if f.exists():  # rows[0] is Re 100 in both
+                rs.append(r)
+                cds.append(json.loads(f.read_text())["rows"][0]["Cd"])
+                break
     a.plot(rs, cds, "o-", label="LBM, periodic 8R box")
     walls = results / "sphere_validation_walls_r4.json"
     if walls.exists():
         a.plot([4], [json.loads(walls.read_text())["rows"][0]["Cd"]], "s", label="LBM, benchmark walls")
     a.axhline(schiller_naumann(100.0), color="k", ls="--", label="Schiller-Naumann")
+    a.axhline(schiller_naumann(100.0) / (1 - BLOCKAGE) ** 2, color="0.5", ls=":",
+              label="Schiller-Naumann / (1-B)², continuity blockage")
     a.set(xlabel="nodes per R", ylabel="Cd", title="Re = 100")
     a.legend()
     for re in (350, 700):
