@@ -4,7 +4,8 @@ Writes JSON with (1) the error of the shipped resolution (nx = 1024, Courant 0.1
 at t = 0.495 for nu in {0.01, 0.1, 1.0}, (2) a grid-refinement table with observed orders, (3) the
 wall time of ``BURGERS.generate("paper")`` and (4) checks of the reference itself: how much a finer
 quadrature changes the Cole-Hopf solution, its distance to an independent pseudo-spectral solver
-(Fourier collocation + DOP853), and the drift of the mean of u, which the exact solution conserves. Run from the repository root:
+(Fourier collocation + DOP853), and the drift of the mean of u, which the exact solution conserves.
+Run from the repository root:
 
     OMP_NUM_THREADS=1 python benchmarks/burgers_convergence.py --out benchmarks/results/burgers_convergence.json
 """

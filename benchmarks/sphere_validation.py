@@ -105,17 +105,16 @@ def cylinder_2d(resolution: int, reynolds: float, spin_up: float, record: float,
     the same estimate as the OpenFOAM mesh study (:func:`dks_gym.solvers.cylinder_case.strouhal`).
     """
     from dks_gym.solvers import cylinder_case as cc
-    from dks_gym.solvers import lbm
+    from dks_gym.solvers import lbm, sphere_case
 
     r = int(resolution)
-    sponge = 4.0
-    x = -8.0 + np.arange(round((24 + sponge) * r) + 1) / r
-    y = -4.0 + (np.arange(8 * r + 2) - 0.5) / r
+    sponge, strength = sphere_case.DEFAULTS["sponge"], sphere_case.DEFAULTS["sponge_strength"]
+    x, y, _ = sphere_case.lattice_axes(r, sponge)  # the sphere lattice's x-y plane: walls exactly at y = +-4R
     body = x[:, None] ** 2 + y[None, :] ** 2 < 1.0
     solid = body.copy()
     solid[:, [0, -1]] = True
     shape = solid.shape
-    absorber = 0.05 * np.clip((x - 16.0) / sponge, 0.0, 1.0) ** 2
+    absorber = strength * np.clip((x - sphere_case.EXTENT[0][1]) / sponge, 0.0, 1.0) ** 2
     nu = u_lattice * 2.0 * r / reynolds
     sim = lbm.LBM("D2Q9", shape, [nu], solid=solid, body=body, inlet_velocity=(u_lattice, 0.0), outlet=True,
                   absorber=absorber, smagorinsky=smagorinsky, device=device, compile=compile)
@@ -141,6 +140,14 @@ def cylinder_2d(resolution: int, reynolds: float, spin_up: float, record: float,
     return {"Re": reynolds, "resolution": r, "shape": list(shape), "u_lattice": u_lattice, "smagorinsky": smagorinsky,
             "spin_up": spin_up, "record": record, "St": st, "Cd": cd, "Cl_amplitude": float(np.ptp(c[:, 1]) / 2),
             "seconds": sec, "lattice_updates": float(np.prod(shape)) * sim.time}
+
+
+def write_rows(out: Path | None, case: str, rows: list[dict]) -> None:
+    """The JSON of a 2D check ({"case", "rows"}) at ``out``, if given."""
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"case": case, "rows": rows}, indent=1))
+        print(f"wrote {out}")
 
 
 def plot(results: Path, out: Path) -> None:
@@ -209,19 +216,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.turek:
         rows = [turek_2d1(d, 1600 * d, args.device, args.compile) for d in args.turek]
-        if args.out is not None:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps({"case": "Schafer-Turek 2D-1", "rows": rows}, indent=1))
-            print(f"wrote {args.out}")
+        write_rows(args.out, "Schafer-Turek 2D-1", rows)
         return 0
     if args.cylinder:
         record = args.average if args.average is not None else 50.0
         rows = [cylinder_2d(r, args.re[0], args.time, record, u_lattice=args.u_lattice, smagorinsky=args.smagorinsky,
                             device=args.device, compile=args.compile) for r in args.cylinder]
-        if args.out is not None:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps({"case": "cylinder benchmark, D2Q9", "rows": rows}, indent=1))
-            print(f"wrote {args.out}")
+        write_rows(args.out, "cylinder benchmark, D2Q9", rows)
         return 0
     bench = get_benchmark("sphere")
     settings = {"resolution": args.resolution, "u_lattice": args.u_lattice, "spin_up": args.time, "n_frames": 1,

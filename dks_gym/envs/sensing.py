@@ -19,7 +19,6 @@ An episode ends with ``truncated=True`` when the last frame is reached: the flow
 from __future__ import annotations
 
 import numbers
-
 from typing import Any
 
 import gymnasium as gym

@@ -8,6 +8,7 @@ evaluation harness runs every test trajectory of a benchmark through it at once.
 
 from __future__ import annotations
 
+import numbers
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -147,11 +148,11 @@ class FilterConfig:
         check_covariance_spec(self.P0, "P0", definite=True)
         check_covariance_spec(self.Q, "Q", definite=False)
         n = self.n_members
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 2:
             raise ValueError(f"n_members must be an integer >= 2 (an ensemble needs two members "
                              f"for a covariance), got {n!r}")
         inflation = self.inflation
-        if isinstance(inflation, bool) or not isinstance(inflation, (int, float, np.floating, np.integer)) \
+        if isinstance(inflation, bool) or not isinstance(inflation, numbers.Real) \
                 or not (1.0 <= float(inflation) < float("inf")):
             raise ValueError(f"inflation must be a finite factor >= 1 (1.0 = none), got {inflation!r}")
         if self.on_divergence not in ("raise", "reset"):
