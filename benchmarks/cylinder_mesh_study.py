@@ -1,10 +1,12 @@
 """Mesh study of the cylinder generator: Strouhal number and mean drag on a mesh and on one twice as fine.
 
-For each Reynolds number (default 200 and 990) the case runs on the preset's mesh (refine 1) and on the
-mesh with every cell count doubled and the wall cell halved (refine 2, four times the cells, half the
-time step). St comes from the mean period between upward zero crossings of the lift over the recording
-window (:func:`dks_gym.solvers.cylinder_case.strouhal`), the drag is averaged over the same window.
-Criterion: both change by less than 3 % from refine 1 to refine 2.
+For each Reynolds number (default 200 and 990) the case runs on the preset's mesh (refine 1.15 for
+`paper`) and on the mesh with every cell count doubled and the wall cell halved (twice the preset's
+refine: four times the cells, half the time step). ``--refine`` takes absolute factors on the base
+mesh (n_quarter 24, wall cell 0.02 for `paper`), so ``--refine 1 2`` reruns the earlier pair. St comes from the
+mean period between upward zero crossings of the lift over the recording window
+(:func:`dks_gym.solvers.cylinder_case.strouhal`), the drag is averaged over the same window.
+Criterion: both change by less than 3 % from the coarsest to every finer mesh given.
 
 For reference the table lists Roshko's relation for an unconfined cylinder, St = 0.212 - 4.5 / Re
 (Roshko 1954, NACA Report 1191, fitted for 50 < Re < 150 and often used up to Re ~ 300): the channel
@@ -16,7 +18,7 @@ is long enough for the shedding to have saturated.
 
 Usage::
 
-    python benchmarks/cylinder_mesh_study.py [--re 200 990] [--refine 1 2] [--workers 2] [--workdir DIR]
+    python benchmarks/cylinder_mesh_study.py [--re 200 990] [--refine 1.15 2.3] [--workers 2] [--workdir DIR]
         [--spin-up 150] [--frames 100] [--spin-up-check 59.5 80 120]
 """
 
@@ -90,7 +92,8 @@ def frames_figure(fields: np.ndarray, reynolds: float, settings: dict, path: Pat
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--re", type=float, nargs="+", default=[200.0, 990.0])
-    parser.add_argument("--refine", type=float, nargs="+", default=[1.0, 2.0])
+    parser.add_argument("--refine", type=float, nargs="+", default=None,
+                        help="absolute refine factors (default: the preset's and twice it)")
     parser.add_argument("--preset", default="paper", choices=["paper", "small"])
     parser.add_argument("--spin-up", type=float, default=None, help="override the preset's minimum spin-up (R/U)")
     parser.add_argument("--spin-up-max", type=float, default=None, help="override the preset's maximum spin-up (R/U)")
@@ -110,6 +113,8 @@ def main() -> None:
     args = parser.parse_args()
 
     base = cc.preset_settings(args.preset)
+    if args.refine is None:
+        args.refine = [float(base["refine"]), 2.0 * float(base["refine"])]
     if args.spin_up is not None:
         base["spin_up"] = args.spin_up
     if args.spin_up_max is not None:
@@ -120,7 +125,8 @@ def main() -> None:
     if args.frames is not None:
         base["n_frames"] = args.frames
     start = time.perf_counter()
-    cases = [(re, rf) for re in args.re for rf in args.refine] + [(re, 1.0) for re in args.spin_up_check]
+    preset_refine = float(base["refine"])
+    cases = [(re, rf) for re in args.re for rf in args.refine] + [(re, preset_refine) for re in args.spin_up_check]
     results = run_cases(cases, base, args.workdir, args.workers)
 
     rows = []
@@ -156,7 +162,7 @@ def main() -> None:
     if args.spin_up_check:
         print("\nLift amplitude (half peak-to-peak) over the spin-up, in windows of 10 R/U, and over the recording:")
         for re in args.spin_up_check:
-            r = results[(re, 1.0)]
+            r = results[(re, preset_refine)]
             ls = r["lift_spin_up"]
             per = round(10.0 / base["force_dt"])
             windows = [0.5 * float(np.ptp(ls[i : i + per])) for i in range(0, len(ls) - per + 1, per)]

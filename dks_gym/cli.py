@@ -194,7 +194,8 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
             err = one_step_error(result.model, ds)
             click.echo(
                 f"  one-step MSE on {err['pairs']} training pairs: {err['model_mse']:.3e} "
-                f"(persistence {err['persistence_mse']:.3e}, ratio {err['model_mse'] / err['persistence_mse']:.3g})"
+                f"(persistence {err['persistence_mse']:.3e}, ratio {err['model_mse'] / err['persistence_mse']:.3g}; "
+                f"reconstruction {err['reconstruction_mse']:.3e})"
             )
 
 

@@ -107,6 +107,13 @@ def test_short_training_learns_the_fields(ds, trained, kind):
     err = one_step_error(trained[kind].model, ds)
     assert err["pairs"] == ds.n_trajectories("train") * (ds.n_frames - 1)
     assert err["model_mse"] < 0.1 * mean_field_error
+    # The reconstruction floor, recomputed from the raw train fields (frames 0..n_t-2 of every trajectory).
+    model = trained[kind].model
+    x = torch.as_tensor(fields[:, :-1], dtype=torch.float32).flatten(0, 1)
+    mu = torch.as_tensor(np.repeat(np.asarray(ds.params("train")), ds.n_frames - 1, axis=0), dtype=torch.float32)
+    with torch.no_grad():
+        recon = model.decode(model.encode(x, mu), mu)
+    assert err["reconstruction_mse"] == pytest.approx(float(((recon - x) ** 2).double().mean()), rel=1e-4)
     untrained = build_model("burgers", kind, r=R, preset="lite", dataset=ds).eval()
     assert one_step_error(untrained, ds)["model_mse"] > 0.5 * mean_field_error
 

@@ -485,7 +485,9 @@ def one_step_error(
 
     Physical units, over the dataset's scored channels and all grid cells, averaged over (trajectory, k)
     pairs of ``split``: all of them, or ``max_pairs`` drawn with ``seed`` if there are more. The
-    persistence ("no change") error is that of predicting x_{k+1} = x_k on the same pairs.
+    persistence ("no change") error is that of predicting x_{k+1} = x_k on the same pairs;
+    ``reconstruction_mse`` is that of decode(encode(x_k)) against x_k, the floor under the model's
+    decoded error (an encoder-decoder cannot predict better than it reconstructs).
     """
     sampler = WindowSampler(dataset, 1, seed=seed, split=split, in_memory=False)
     n_pairs = sampler.n_windows
@@ -496,16 +498,23 @@ def one_step_error(
     traj, start = index // (sampler.n_t - 1), index % (sampler.n_t - 1)
     scored = [dataset.channels.index(c) for c in dataset.scored_channels]
     device = model.stats_mean.device
-    sums = torch.zeros(2, dtype=torch.float64)
+    sums = torch.zeros(3, dtype=torch.float64)
+
+    def total(a: torch.Tensor, b: torch.Tensor) -> float:
+        return float(((a - b) ** 2).double().mean(dim=tuple(range(1, a.ndim))).sum())
+
     for lo in range(0, len(index), batch_size):
         x, mu = sampler.windows(traj[lo: lo + batch_size], start[lo: lo + batch_size])
         x, mu = x.to(device), mu.to(device)
-        pred = model.decode(model.forecast(model.encode(x[:, 0], mu), mu), mu)
+        z = model.encode(x[:, 0], mu)
+        pred = model.decode(model.forecast(z, mu), mu)
         target = x[:, 1, scored]
-        sums[0] += float(((pred[:, scored] - target) ** 2).double().mean(dim=tuple(range(1, target.ndim))).sum())
-        sums[1] += float(((x[:, 0, scored] - target) ** 2).double().mean(dim=tuple(range(1, target.ndim))).sum())
+        sums[0] += total(pred[:, scored], target)
+        sums[1] += total(x[:, 0, scored], target)
+        sums[2] += total(model.decode(z, mu)[:, scored], x[:, 0, scored])
     n = len(index)
-    return {"model_mse": float(sums[0]) / n, "persistence_mse": float(sums[1]) / n, "pairs": n}
+    return {"model_mse": float(sums[0]) / n, "persistence_mse": float(sums[1]) / n,
+            "reconstruction_mse": float(sums[2]) / n, "pairs": n}
 
 
 __all__ = [
