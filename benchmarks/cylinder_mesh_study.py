@@ -113,8 +113,9 @@ def main() -> None:
     args = parser.parse_args()
 
     base = cc.preset_settings(args.preset)
+    preset_refine = float(base["refine"])
     if args.refine is None:
-        args.refine = [float(base["refine"]), 2.0 * float(base["refine"])]
+        args.refine = [preset_refine, 2.0 * preset_refine]
     if args.spin_up is not None:
         base["spin_up"] = args.spin_up
     if args.spin_up_max is not None:
@@ -125,7 +126,6 @@ def main() -> None:
     if args.frames is not None:
         base["n_frames"] = args.frames
     start = time.perf_counter()
-    preset_refine = float(base["refine"])
     cases = [(re, rf) for re in args.re for rf in args.refine] + [(re, preset_refine) for re in args.spin_up_check]
     results = run_cases(cases, base, args.workdir, args.workers)
 
