@@ -16,6 +16,7 @@ the lite Burgers model)::
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
@@ -34,7 +35,7 @@ from .rl import (
     save_learning_curve,
     trainer_command,
 )
-from .scoring import filter_config, forward_reference, run_layouts
+from .scoring import forward_reference, run_layouts
 
 
 def make_adaptive_env(task: PlacementTask, candidates: np.ndarray, *, n_envs: int = 8, seed: int = 0,
@@ -44,10 +45,10 @@ def make_adaptive_env(task: PlacementTask, candidates: np.ndarray, *, n_envs: in
 
     from dks_gym.wrappers import LatentFilterVectorEnv, SB3VecEnv
 
-    fc = filter_config(task.config)
     venv = LatentFilterVectorEnv(
-        task.benchmark.name, n_envs, model=task.model, filter=fc.filter, initial=fc.initial, P0=fc.P0, Q=fc.Q,
-        n_members=fc.n_members, seed=seed, on_divergence="reset", preset=task.dataset.preset or "paper",
+        task.benchmark.name, n_envs, model=task.model,
+        config=dataclasses.replace(task.config.filter, on_divergence="reset", seed=seed),
+        preset=task.dataset.preset or "paper",
         data_path=str(task.dataset.path), split="train", sensor_mode="select", candidates=candidates,
         n_sensors=task.n_sensors, noise_level=task.config.noise_level,
     )
@@ -111,7 +112,7 @@ def train_adaptive(task: PlacementTask, *, timesteps: int = 20480, n_envs: int =
         out = Path(out)
         save_agent(agent, out / "adaptive.zip", meta)
         save_learning_curve(curve.as_dict(), out / "adaptive_curve.png",
-                            f"adaptive sensing (PPO), {task.benchmark.name} ({task.model.kind} {task.config.filter}, "
+                            f"adaptive sensing (PPO), {task.benchmark.name} ({task.model.kind} {task.config.filter.kind}, "
                             f"m={task.n_sensors}, {len(cands)} candidates)",
                             {"paper layout (all training trajectories)": paper_return})
     return agent, meta

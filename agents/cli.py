@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from dks_gym.benchmarks import BENCHMARKS
+from dks_gym.names import FILTERS, MODEL_KINDS
 
 from .evaluate import POLICIES
 
@@ -15,8 +16,8 @@ from .evaluate import POLICIES
 @click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False))
 @click.option("--policies", default="paper,random,qr,greedy", show_default=True,
               help=f"Comma-separated, from: {', '.join(POLICIES)}.")
-@click.option("--model", type=click.Choice(["koopman", "mlp", "xlstm", "pdmd"]), default="koopman", show_default=True)
-@click.option("--filter", "filter_", type=click.Choice(["ekf", "enkf", "forward"]), default="ekf", show_default=True)
+@click.option("--model", type=click.Choice(list(MODEL_KINDS)), default="koopman", show_default=True)
+@click.option("--filter", "filter_", type=click.Choice(list(FILTERS)), default="ekf", show_default=True)
 @click.option("--preset", type=click.Choice(["lite", "paper"]), default="lite", show_default=True,
               help="Latent model preset (checkpoint under $DKS_GYM_HOME/models).")
 @click.option("--data-preset", type=click.Choice(["paper", "small"]), default="paper", show_default=True)

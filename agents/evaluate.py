@@ -31,14 +31,14 @@ from __future__ import annotations
 import math
 import platform
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from dks_gym.evaluation.assimilation import AssimilationResult
+from dks_gym.assimilation import AssimilationResult
 from dks_gym.evaluation.results import make_record, new_results, save_results
 
 from .adaptive import PPOAdaptive
@@ -166,7 +166,7 @@ def placement_document(task: PlacementTask, results: Sequence[PolicyResult], for
     """The results document (``dks-gym-results`` schema) of one harness run."""
     import torch
 
-    from dks_gym import __version__
+    from dks_gym.version import __version__
     from dks_gym.models.checkpoint import dataset_identity
 
     ds = task.dataset
@@ -182,7 +182,7 @@ def placement_document(task: PlacementTask, results: Sequence[PolicyResult], for
                    policy_config={"name": "forward", "note": "no assimilation: the open-loop model, sensors unused"})
         records.append(rec)
     seeds = sorted({int(s) for s in results[0].result.extras["noise_seeds"]})
-    config = dict(asdict(task.config), n_test=ds.n_trajectories(task.config.split), n_frames=ds.n_frames,
+    config = dict(task.config.as_record(), n_test=ds.n_trajectories(task.config.split), n_frames=ds.n_frames,
                   noise_seeds=seeds, n_episodes=int(results[0].result.batch),
                   observed_channel=ds.observed_channel, scored_channels=list(ds.scored_channels),
                   model=task.model.kind, r=int(task.model.r), model_preset=model_preset, device=str(task.device),
@@ -448,7 +448,7 @@ def evaluate_placement(
     start = time.perf_counter()
     if task is None:
         task = PlacementTask.load(benchmark, model, model_preset=model_preset, data_preset=data_preset, device=device,
-                                  train_if_missing=train_if_missing, filter=filter, n_sensors=n_sensors,
+                                  train_if_missing=train_if_missing, kind=filter, n_sensors=n_sensors,
                                   noise_level=noise_level, noise_seed=noise_seed)
     out = Path(out) if out is not None else None
     chosen = make_policies(policies, random_seeds=random_seeds, greedy_candidates=greedy_candidates,
@@ -465,7 +465,7 @@ def evaluate_placement(
     static = next((pr.layouts for pr in results if not pr.policy.adaptive), None)
     forward = run_layouts(task.model, task.dataset, static if static is not None else
                           np.repeat(task.benchmark.paper_layout(task.n_sensors)[None], len(index), 0),
-                          index, replace(task.config, filter="forward"), noise_seeds=episode_seeds)
+                          index, task.config.replace(kind="forward"), noise_seeds=episode_seeds)
     doc = add_paired_vs_random(placement_document(task, results, forward, model_preset=model_preset,
                                                   wall_time=time.perf_counter() - start))
     if out is not None:

@@ -50,7 +50,7 @@ import numpy as np
 
 from dks_gym.benchmarks import Benchmark
 from dks_gym.dataset import Dataset
-from dks_gym.evaluation.assimilation import AssimilationConfig
+from dks_gym.assimilation import AssimilationConfig
 
 
 @dataclass
@@ -96,8 +96,8 @@ class PlacementTask:
              candidates: np.ndarray | None = None, seed: int = 0, **config: Any) -> "PlacementTask":
         """The task for a benchmark's dataset in the data home and a cached model checkpoint.
 
-        ``config`` sets :class:`~dks_gym.evaluation.AssimilationConfig` fields (``filter``, ``noise_level``,
-        ``n_sensors``, ``noise_seed`` ...). ``train_if_missing=True`` trains a missing model (lite: minutes).
+        ``config`` sets fields of :class:`~dks_gym.assimilation.AssimilationConfig` and of its filter
+        (``kind``, ``noise_level``, ``n_sensors``, ``noise_seed`` ...). ``train_if_missing=True`` trains a missing model (lite: minutes).
         """
         from dks_gym.dataset import load_dataset
         from dks_gym.models import load_model
@@ -105,7 +105,7 @@ class PlacementTask:
         dataset = load_dataset(benchmark, data_preset)
         latent = load_model(benchmark, model, r=r, preset=model_preset, T=T, dataset=dataset, device=device,
                             train_if_missing=train_if_missing, progress=False)
-        return cls(dataset, latent, AssimilationConfig(**config), candidates=candidates, seed=seed, device=device)
+        return cls(dataset, latent, AssimilationConfig().replace(**config), candidates=candidates, seed=seed, device=device)
 
     @property
     def benchmark(self) -> Benchmark:

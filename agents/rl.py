@@ -93,12 +93,10 @@ def save_learning_curve(curve: dict[str, list], path: str | Path, title: str,
 
 def model_identity(task: Any) -> dict[str, Any]:
     """What a learned policy was trained with: benchmark, latent model, dataset fingerprint, filter settings."""
-    from dataclasses import asdict
-
     from dks_gym.models.checkpoint import dataset_identity
 
     return {"benchmark": task.benchmark.name, "model": task.model.kind, "r": int(task.model.r),
-            "n_sensors": task.n_sensors, "dataset": dataset_identity(task.dataset), "config": asdict(task.config)}
+            "n_sensors": task.n_sensors, "dataset": dataset_identity(task.dataset), "config": task.config.as_record()}
 
 
 def save_agent(agent: Any, path: str | Path, metadata: dict[str, Any]) -> Path:
@@ -169,7 +167,7 @@ def trainer_command(help_text: str, timesteps: int, n_envs: int):
 
             try:
                 task = PlacementTask.load(benchmark, model, model_preset=preset, data_preset=data_preset,
-                                          filter=filter_, n_sensors=n_sensors, seed=seed,
+                                          kind=filter_, n_sensors=n_sensors, seed=seed,
                                           train_if_missing=train_if_missing)
             except CheckpointMissing as exc:
                 raise click.ClickException(f"{exc} (pass --train-if-missing to train it here)") from exc

@@ -1,11 +1,10 @@
 """Scoring sensor layouts with the filter in the loop: many layouts on many trajectories in one batched filter.
 
-* :func:`run_layouts`: the real filter (forward run, EKF or EnKF through
-  :class:`~dks_gym.wrappers.LatentAssimilator`) for B (layout, trajectory) pairs at once. Readings come from
-  :class:`~dks_gym.envs.SensingEnv` objects, one per trajectory, that read the union of all layouts' cells,
-  so each pair sees exactly the noise the harness and the environments give that cell (the noise depends on
-  (noise seed, split, trajectory, frame, cell) only). Used by the greedy baseline, the sequential MDP's
-  reward and the evaluation harness.
+* :func:`run_layouts`: the real filter (forward run, EKF or EnKF: :func:`dks_gym.assimilation.run_episodes`)
+  for B (layout, trajectory) pairs at once. Readings come from :class:`~dks_gym.envs.SensingEnv` objects,
+  one per trajectory, that read the union of all layouts' cells, so each pair sees exactly the noise the
+  harness and the environments give that cell (the noise depends on (noise seed, split, trajectory, frame,
+  cell) only). Used by the greedy baseline, the sequential MDP's reward and the evaluation harness.
 * :func:`run_adaptive`: the same loop with a layout chosen every step by an adaptive policy
   (``sensor_mode="select"`` environments).
 * :func:`covariance_traces`: the trace of the EKF analysis covariance (Eqs. 14, 15, 17) along the encoded
@@ -22,56 +21,11 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from dks_gym.assimilation import AssimilationConfig, AssimilationResult, close_envs, episode_envs, run_episodes
 from dks_gym.dataset import Dataset
 from dks_gym.envs.noise import noise_sigma
-from dks_gym.envs.sensing import SensingEnv
-from dks_gym.evaluation.assimilation import AssimilationConfig, AssimilationResult
 from dks_gym.filters import GaussianState, LatentDynamics, ekf_forecast, ekf_update
-from dks_gym.wrappers.assimilator import FilterConfig, LatentAssimilator
-
-
-def model_device(model: Any) -> torch.device:
-    """The device a model's buffers live on (CPU for models without tensors)."""
-    buffer = getattr(model, "stats_mean", None)
-    if isinstance(buffer, torch.Tensor):
-        return buffer.device
-    first = next(iter(model.parameters()), None) if hasattr(model, "parameters") else None
-    return first.device if first is not None else torch.device("cpu")
-
-
-def filter_config(config: AssimilationConfig) -> FilterConfig:
-    """The wrappers' filter settings for an evaluation config ("forward" is the filter with the update off)."""
-    return FilterConfig(filter="none" if config.filter == "forward" else config.filter, initial=config.initial,
-                        P0=config.P0, Q=config.Q, n_members=config.n_members, on_divergence=config.on_divergence)
-
-
-def _check_pairs(dataset: Dataset, layouts: np.ndarray, trajectories: np.ndarray, split: str) -> None:
-    n_split = dataset.n_trajectories(split)
-    if layouts.ndim != 2 or layouts.shape[0] != trajectories.shape[0] or layouts.shape[0] == 0:
-        raise ValueError(f"layouts must be (B, m) with one row per trajectory, got {layouts.shape} for "
-                         f"{trajectories.shape[0]} trajectories")
-    if trajectories.min() < 0 or trajectories.max() >= n_split:
-        raise ValueError(f"trajectories must be indices in [0, {n_split}) of the {split!r} split")
-
-
-def _sensing_env(dataset: Dataset, split: str, config: AssimilationConfig, **kwargs: Any) -> SensingEnv:
-    return SensingEnv(dataset.benchmark, preset=dataset.preset or "paper", data_path=str(dataset.path), split=split,
-                      noise_level=config.noise_level, **kwargs)
-
-
-def _result(model: Any, config: AssimilationConfig, trajectories: np.ndarray, envs: list[SensingEnv],
-            assimilator: LatentAssimilator, step_mse: np.ndarray, estimate: torch.Tensor, wall: float,
-            extras: dict[str, Any]) -> AssimilationResult:
-    d = assimilator.filter.diagnostics
-    forecast_norm = None if config.filter == "enkf" else d.stacked("forecast_norm").cpu().double().numpy()
-    return AssimilationResult(
-        model=model.kind, r=int(model.r), config=config, trajectories=trajectories,
-        params=np.array([e.mu for e in envs], dtype=np.float64), step_mse=step_mse, forecast_norm=forecast_norm,
-        step_seconds=np.asarray(d.wall_time, dtype=np.float64),
-        divergence_resets=d.stacked("reset").sum(0).cpu().numpy().astype(np.int64),
-        final_estimate=estimate.cpu().numpy().astype(np.float32),
-        final_truth=assimilator.truth(envs).cpu().numpy().astype(np.float32), wall_time=wall, extras=extras,
-    )
+from dks_gym.models import model_device
 
 
 def _episode_seeds(config: AssimilationConfig, n: int, noise_seeds: Any) -> np.ndarray:
@@ -89,42 +43,31 @@ def run_layouts(model: Any, dataset: Dataset, layouts: np.ndarray, trajectories:
 
     ``layouts`` (B, m) flat grid indices, ``trajectories`` (B,) indices into the split, ``noise_seeds``
     (B,) the noise seed of each episode (default ``config.noise_seed`` for all). Returns an
-    :class:`~dks_gym.evaluation.AssimilationResult` whose ``step_mse`` is (B, n_t) (frame 0 is the initial
+    :class:`~dks_gym.assimilation.AssimilationResult` whose ``step_mse`` is (B, n_t) (frame 0 is the initial
     estimate, the same for every layout) and ``extras["layouts"]`` the layouts.
     """
     start = time.perf_counter()
     split = split or config.split
     layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
     trajectories = np.asarray(trajectories, dtype=np.int64).reshape(-1)
-    _check_pairs(dataset, layouts, trajectories, split)
+    n_split = dataset.n_trajectories(split)
+    if layouts.ndim != 2 or layouts.shape[0] != trajectories.shape[0] or layouts.shape[0] == 0:
+        raise ValueError(f"layouts must be (B, m) with one row per trajectory, got {layouts.shape} for "
+                         f"{trajectories.shape[0]} trajectories")
+    if trajectories.min() < 0 or trajectories.max() >= n_split:
+        raise ValueError(f"trajectories must be indices in [0, {n_split}) of the {split!r} split")
     seeds = _episode_seeds(config, len(trajectories), noise_seeds)
-    union = np.unique(layouts)
-    position = np.searchsorted(union, layouts)  # (B, m): where each sensor's reading sits in the union
-    episodes, which = np.unique(np.stack([trajectories, seeds], axis=1), axis=0, return_inverse=True)
-    which = which.reshape(-1)
-    readers = []
-    for t, s in episodes:
-        env = _sensing_env(dataset, split, config, sensors=union)
-        env.reset(options={"trajectory": int(t), "noise_seed": int(s)})
-        readers.append(env)
-    envs = [readers[i] for i in which]
+    # One env per (trajectory, seed) reads the union of all layouts' cells: each pair sees exactly the noise
+    # the environments give that cell, which depends on (noise seed, split, trajectory, frame, cell) only.
+    envs = episode_envs(dataset, trajectories, seeds, split=split, noise_level=config.noise_level, share=True,
+                        sensors=np.unique(layouts))
     try:
-        assimilator = LatentAssimilator(model, filter_config(config), device=model_device(model), dtype=dtype)
-        assimilator.start(envs, seed=config.filter_seed)
-        assimilator.sensors.current = layouts
-        step_mse = np.empty((len(envs), dataset.n_frames), dtype=np.float64)
-        estimate = assimilator.estimate()
-        step_mse[:, 0] = assimilator.errors(estimate, envs)[0]
-        for k in range(1, dataset.n_frames):
-            readings = np.stack([env.step(None)[0] for env in readers])
-            assimilator.step(readings[which[:, None], position], layouts)
-            estimate = assimilator.estimate()
-            step_mse[:, k] = assimilator.errors(estimate, envs)[0]
-        return _result(model, config, trajectories, envs, assimilator, step_mse, estimate,
-                       time.perf_counter() - start, {"layouts": layouts, "noise_seeds": seeds})
+        result = run_episodes(model, envs, config, layouts=layouts, dtype=dtype)
     finally:
-        for env in readers:
-            env.close()
+        close_envs(envs)
+    result.extras["noise_seeds"] = seeds
+    result.wall_time = time.perf_counter() - start  # including the envs' set-up
+    return result
 
 
 def forward_reference(model: Any, dataset: Dataset, config: AssimilationConfig, split: str = "train") -> np.ndarray:
@@ -133,13 +76,11 @@ def forward_reference(model: Any, dataset: Dataset, config: AssimilationConfig, 
     The sensors do not matter for a forward run, so this is the scale the learned policies' rewards are
     divided by: a layout scores 1 when the filter does no better than the open-loop model.
     """
-    from dataclasses import replace
-
     n = dataset.n_trajectories(split)
     layout = dataset.benchmark.paper_layout(config.n_sensors) if config.n_sensors <= 32 else \
         np.flatnonzero(dataset.benchmark.fluid_mask(dataset.cell_type).ravel())[: config.n_sensors]
     result = run_layouts(model, dataset, np.repeat(np.asarray(layout)[None], n, 0), np.arange(n),
-                         replace(config, filter="forward"), split=split)
+                         config.replace(kind="forward"), split=split)
     return result.step_mse[:, 1:].mean(axis=1)
 
 
@@ -155,38 +96,16 @@ def run_adaptive(model: Any, dataset: Dataset, decide: Callable[[np.ndarray], np
     start = time.perf_counter()
     trajectories = np.asarray(trajectories, dtype=np.int64).reshape(-1)
     seeds = _episode_seeds(config, len(trajectories), noise_seeds)
-    candidates = np.asarray(candidates, dtype=np.int64)
-    envs = []
-    for t, s in zip(trajectories, seeds):
-        env = _sensing_env(dataset, config.split, config, n_sensors=config.n_sensors, sensor_mode="select",
-                           candidates=candidates)
-        env.reset(options={"trajectory": int(t), "noise_seed": int(s)})
-        envs.append(env)
+    envs = episode_envs(dataset, trajectories, seeds, split=config.split, noise_level=config.noise_level,
+                        n_sensors=config.n_sensors, sensor_mode="select",
+                        candidates=np.asarray(candidates, dtype=np.int64))
     try:
-        assimilator = LatentAssimilator(model, filter_config(config), device=model_device(model), dtype=dtype)
-        assimilator.start(envs, seed=config.filter_seed)
-        n_t = dataset.n_frames
-        step_mse = np.empty((len(envs), n_t), dtype=np.float64)
-        layouts = np.empty((len(envs), n_t - 1, config.n_sensors), dtype=np.int64)
-        decision_seconds = np.empty(n_t - 1)
-        estimate = assimilator.estimate()
-        step_mse[:, 0] = assimilator.errors(estimate, envs)[0]
-        for k in range(1, n_t):
-            tic = time.perf_counter()
-            actions = np.asarray(decide(assimilator.belief()))
-            decision_seconds[k - 1] = time.perf_counter() - tic
-            steps = [env.step(a) for env, a in zip(envs, actions)]
-            sensors = np.stack([s[4]["sensors"] for s in steps])
-            layouts[:, k - 1] = sensors
-            assimilator.step(np.stack([s[0] for s in steps]), sensors)
-            estimate = assimilator.estimate()
-            step_mse[:, k] = assimilator.errors(estimate, envs)[0]
-        return _result(model, config, trajectories, envs, assimilator, step_mse, estimate,
-                       time.perf_counter() - start,
-                       {"layouts": layouts, "decision_seconds": decision_seconds, "noise_seeds": seeds})
+        result = run_episodes(model, envs, config, decide=decide, dtype=dtype)
     finally:
-        for env in envs:
-            env.close()
+        close_envs(envs)
+    result.extras["noise_seeds"] = seeds
+    result.wall_time = time.perf_counter() - start  # including the envs' set-up
+    return result
 
 
 def decoder_jacobians(model: Any, z: torch.Tensor, mu: torch.Tensor, cells: np.ndarray, channel: str,
@@ -293,7 +212,7 @@ def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: 
     r = lin.F.shape[-1]
     batch = n_layouts * n_traj
     zeros = torch.zeros(batch, r, dtype=lin.J.dtype, device=lin.J.device)
-    state = GaussianState(zeros, config.P0 * torch.eye(r, dtype=lin.J.dtype, device=lin.J.device).expand(batch, r, r))
+    state = GaussianState(zeros, config.filter.P0 * torch.eye(r, dtype=lin.J.dtype, device=lin.J.device).expand(batch, r, r))
     R = lin.sigma[which] ** 2
     y = torch.zeros(batch, layouts.shape[1], dtype=lin.J.dtype, device=lin.J.device)
     traces = []
@@ -301,7 +220,7 @@ def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: 
         Jk = lin.J[which[:, None], k, rows]  # (L T, m, r)
         dynamics = LatentDynamics(lambda z: z, lambda z: torch.zeros_like(y), forecast_jacobian=lin.F[which, k - 1],
                                   observe_jacobian=Jk)
-        state, _ = ekf_forecast(state, dynamics, config.Q)
+        state, _ = ekf_forecast(state, dynamics, config.filter.Q)
         state, _ = ekf_update(state, y, dynamics, R)
         if space == "field":
             traces.append((lin.M[which, k] * state.cov).sum(dim=(-2, -1)))  # trace(M P), both symmetric

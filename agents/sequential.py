@@ -240,7 +240,7 @@ def train_sequential(task: PlacementTask, *, timesteps: int = 16384, n_envs: int
         out = Path(out)
         save_agent(agent, out / "sequential.zip", meta)
         save_learning_curve(curve.as_dict(), out / "sequential_curve.png",
-                            f"sequential placement, {task.benchmark.name} ({task.model.kind} {task.config.filter}, "
+                            f"sequential placement, {task.benchmark.name} ({task.model.kind} {task.config.filter.kind}, "
                             f"m={m}, {len(cands)} candidates)",
                             {"paper layout (all training trajectories)": paper_return})
     return agent, meta

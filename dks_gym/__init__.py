@@ -1,16 +1,38 @@
 """dks-gym: Gymnasium environments for sparse flow sensing from the paper *Deep Koopman Sensing*.
 
-``import dks_gym`` registers ``DKS/Burgers-v0``, ``DKS/Cylinder-v0``, ``DKS/Dambreak-v0`` and ``DKS/Sphere-v0``.
+``import dks_gym`` registers ``DKS/Burgers-v0``, ``DKS/Cylinder-v0``, ``DKS/Dambreak-v0`` and ``DKS/Sphere-v0``
+(by string entry points: it imports neither torch nor the filter stack). ``LatentFilter``, ``FilterConfig``
+and ``load_model`` are imported on first use.
 """
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+from importlib import import_module
+from typing import Any
 
 from .envs import SensingEnv, register_envs
-from .wrappers.vector import register_vector_entry_points
+from .version import __version__
 
 register_envs()
-register_vector_entry_points()
 
-__all__ = ["SensingEnv", "__version__", "register_envs"]
+# Exported names that need torch, and the module that defines each: imported when first asked for.
+_LAZY = {
+    "LatentFilter": "dks_gym.wrappers.latent_filter",
+    "FilterConfig": "dks_gym.assimilation.config",
+    "load_model": "dks_gym.models.training",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'dks_gym' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_LAZY])
+
+
+__all__ = ["FilterConfig", "LatentFilter", "SensingEnv", "__version__", "load_model", "register_envs"]

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from .benchmarks import BENCHMARKS, PRESETS, GeneratorUnavailable
+from .names import MODEL_KINDS
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -137,7 +138,7 @@ def doctor() -> None:
 
 @main.command("train")
 @click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False))
-@click.option("--model", "model", type=click.Choice(["koopman", "mlp", "xlstm", "pdmd", "all"]), default="all",
+@click.option("--model", "model", type=click.Choice([*MODEL_KINDS, "all"]), default="all",
               show_default=True, help="Latent model to train; 'all' trains the four in turn.")
 @click.option("--preset", type=click.Choice(["lite", "paper"]), default="lite", show_default=True,
               help="Architecture and schedule: the paper's, or narrow and CPU-trainable.")
@@ -167,7 +168,7 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
     from .home import DataHomeError
     from .models.training import one_step_error, train_model
 
-    kinds = ["koopman", "mlp", "xlstm", "pdmd"] if model == "all" else [model]
+    kinds = list(MODEL_KINDS) if model == "all" else [model]
     try:
         ds = load_dataset(benchmark.lower(), data_preset)
     except (DatasetMissing, SchemaError) as exc:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import uuid
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ import h5py
 import numpy as np
 from filelock import FileLock, Timeout
 
+from .atomic import atomic_path
 from .benchmarks import BENCHMARKS, Benchmark, GeneratedData, check_preset, get_benchmark
 from .home import dataset_path, ensure_writable
 
@@ -112,13 +112,11 @@ def write_dataset(
         lock.acquire()
     except Timeout as exc:
         raise RuntimeError(f"another process is writing {path}; wait for it or remove {lock.lock_file}") from exc
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
     try:
-        _write(data, bench, tmp, extra_attrs or {})
-        os.replace(tmp, path)
+        # On errors and on KeyboardInterrupt alike the temporary file goes: nothing half-written survives.
+        with atomic_path(path) as tmp:
+            _write(data, bench, tmp, extra_attrs or {})
     finally:
-        # Runs on errors and on KeyboardInterrupt alike: nothing half-written survives.
-        tmp.unlink(missing_ok=True)
         lock.release()
     return path
 

@@ -9,6 +9,7 @@ import gymnasium as gym
 
 import dks_gym  # noqa: F401  (registers the environments)
 from dks_gym.dataset import DatasetMissing, generate_dataset, load_dataset
+from dks_gym.names import FILTERS, MODEL_KINDS
 from dks_gym.wrappers import LatentFilter
 
 
@@ -18,9 +19,9 @@ def main(preset: str = "paper") -> None:
     except DatasetMissing:  # empty data home: solve Burgers for the preset's viscosities
         generate_dataset("burgers", preset)
     print(f"{'model':8s} {'forward':>10s} {'EKF':>10s} {'EnKF':>10s}")
-    for model in ("koopman", "pdmd", "mlp", "xlstm"):
+    for model in MODEL_KINDS:
         row = []
-        for filt in ("none", "ekf", "enkf"):
+        for filt in FILTERS:
             env = LatentFilter(gym.make("DKS/Burgers-v0", preset=preset), model=model, filter=filt,
                                train_if_missing=True)
             finals = []

@@ -16,7 +16,7 @@ class LeftHalf(StaticPolicy):
         return cells[np.linspace(0, len(cells) - 1, task.n_sensors).astype(int)]
 
 
-task = PlacementTask.load("burgers", "koopman", model_preset="lite", filter="ekf", n_sensors=16, train_if_missing=True)
+task = PlacementTask.load("burgers", "koopman", model_preset="lite", kind="ekf", n_sensors=16, train_if_missing=True)
 _, results = evaluate_placement("burgers", ["paper", "random", "qr", LeftHalf()], task=task, out="placement-burgers")
 for r in sorted(results, key=lambda r: r.time_mean_mse.mean()):
     print(f"{r.name:12s} time-averaged MSE {r.time_mean_mse.mean():.3e} ± {r.time_mean_mse.std():.1e}")

@@ -16,7 +16,7 @@ from agents.baselines import GreedyLayout, PaperLayout, QRLayout, RandomLayout, 
 from agents.policies import PlacementTask, candidate_lattice, check_layout, distinct_picks
 from agents.scoring import LinearizedTrajectories, covariance_traces, run_layouts
 from dks_gym.dataset import Dataset, write_dataset
-from dks_gym.evaluation.assimilation import AssimilationConfig
+from dks_gym.assimilation import AssimilationConfig
 from dks_gym.models import build_model
 from dks_gym.wrappers import LatentFilter
 
@@ -251,15 +251,15 @@ def test_evaluate_placement_writes_a_ranked_valid_results_file(burgers_task, tmp
 
     def fake_load(cls, benchmark, model="koopman", **kwargs):
         captured.update(kwargs)
-        return dataclasses.replace(burgers_task, config=AssimilationConfig(**{
-            k: kwargs[k] for k in ("filter", "n_sensors", "noise_level", "noise_seed")}))
+        return dataclasses.replace(burgers_task, config=AssimilationConfig().replace(**{
+            k: kwargs[k] for k in ("kind", "n_sensors", "noise_level", "noise_seed")}))
 
     monkeypatch.setattr(Task, "load", classmethod(fake_load))
     result = CliRunner().invoke(evaluate_placement_command, [
         "burgers", "--policies", "paper,random,qr", "--random-seeds", "2", "--noise-seed", "7", "--noise-seeds", "2",
         "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
-    assert captured["noise_seed"] == 7 and captured["filter"] == "ekf"
+    assert captured["noise_seed"] == 7 and captured["kind"] == "ekf"
     doc = load_results(tmp_path / "placement.json")
     recs = {r["policy"]: r for r in doc["records"]}
     assert set(recs) == {"paper", "random-0", "random-1", "qr", "forward"}

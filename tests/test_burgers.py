@@ -188,7 +188,7 @@ def test_frames_sit_at_their_times(small) -> None:
     for nu, traj in zip(data.params["test"], fields["test"]):
         for k in (1, 50, 99):
             rms = {j: np.sqrt(np.mean((traj[k, 0] - exact_solution(x, 0.005 * j, nu)) ** 2)) for j in (k - 1, k, k + 1)}
-            # The scheme's RMS error at nx = 1024 is below 5e-3 (benchmarks/burgers_convergence.py);
+            # The scheme's RMS error at nx = 1024 is below 5e-3 (validation/burgers_convergence.py);
             # the change over one frame is larger, so a frame at the wrong time fails.
             assert rms[k] < 5e-3 and rms[k] < rms[k - 1] and rms[k] < rms[k + 1], (nu, k, rms)
 

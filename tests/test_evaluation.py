@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 import dks_gym  # noqa: F401
 from dks_gym.dataset import Dataset
-from dks_gym.evaluation.assimilation import AssimilationConfig, run_assimilation
+from dks_gym.assimilation import AssimilationConfig, FilterConfig, approximate_initial_latent, run_assimilation
 from dks_gym.evaluation.commands import compare_command, reproduce_command
 from dks_gym.evaluation.results import (
     ResultsError,
@@ -30,7 +30,7 @@ from dks_gym.evaluation.results import (
     validate,
 )
 from dks_gym.models.training import train_model
-from dks_gym.wrappers import LatentFilter, approximate_initial_latent
+from dks_gym.wrappers import LatentFilter
 
 # Short trainings: enough for the models to leave their initialization, small enough for a test (~25 s).
 TRAIN_STEPS = {"koopman": 150, "mlp": 60, "xlstm": 40}
@@ -69,7 +69,7 @@ def models(dataset: Dataset) -> dict:
 def _single_wrapper_run(model, filt: str, initial: str, trajectory: int) -> tuple[np.ndarray, np.ndarray]:
     """The same run through the LatentFilter wrapper, one trajectory: per-frame MSE and ||F_k|| per step."""
     env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model,
-                       filter="none" if filt == "forward" else filt, initial=initial)
+                       filter=filt, config=FilterConfig(initial=initial))
     _, info = env.reset(options={"trajectory": trajectory, "noise_seed": 0})
     mse, norms, done = [info["mse"]], [], False
     while not done:
@@ -84,7 +84,7 @@ def _single_wrapper_run(model, filt: str, initial: str, trajectory: int) -> tupl
 @pytest.mark.parametrize("kind, filt, initial", [("koopman", "ekf", "approximate"), ("mlp", "ekf", "exact"),
                                                  ("xlstm", "forward", "approximate"), ("pdmd", "ekf", "approximate")])
 def test_batched_run_equals_wrappers_one_trajectory_at_a_time(models, dataset, kind, filt, initial) -> None:
-    result = run_assimilation(models[kind], dataset, filter=filt, initial=initial)
+    result = run_assimilation(models[kind], dataset, kind=filt, initial=initial)
     n_test = dataset.n_trajectories("test")
     assert result.step_mse.shape == (n_test, dataset.n_frames)
     for i in range(n_test):
@@ -99,7 +99,7 @@ def test_batched_run_equals_wrappers_one_trajectory_at_a_time(models, dataset, k
 def test_forward_run_is_the_decoded_rollout_scored_against_the_data(models, dataset) -> None:
     """Eq. 18 recomputed from the model's rollout and the stored fields, and ||F_k|| from the Jacobians."""
     model = models["mlp"]
-    result = run_assimilation(model, dataset, filter="forward")
+    result = run_assimilation(model, dataset, kind="forward")
     mu = torch.as_tensor(dataset.params("test"), dtype=torch.float32)
     z0 = approximate_initial_latent(model, dataset)[None].expand(len(mu), -1)
     n_steps = dataset.n_frames - 1
@@ -112,7 +112,7 @@ def test_forward_run_is_the_decoded_rollout_scored_against_the_data(models, data
     norms = torch.stack([torch.linalg.matrix_norm(model.forecast_jacobian(path[:, k], mu), ord=2)
                          for k in range(n_steps)]).amax(0).detach().numpy()
     np.testing.assert_allclose(result.max_forecast_norm, norms, rtol=1e-4)
-    koopman = run_assimilation(models["koopman"], dataset, filter="forward")
+    koopman = run_assimilation(models["koopman"], dataset, kind="forward")
     with torch.no_grad():
         k_norm = torch.linalg.matrix_norm(models["koopman"].koopman_operator(mu), ord=2).detach().numpy()
     np.testing.assert_allclose(koopman.max_forecast_norm, k_norm, rtol=1e-5)
@@ -121,9 +121,9 @@ def test_forward_run_is_the_decoded_rollout_scored_against_the_data(models, data
 
 def test_enkf_run_is_reproducible_from_its_seed(models, dataset) -> None:
     model = models["koopman"]
-    a = run_assimilation(model, dataset, filter="enkf", n_members=8, filter_seed=3)
-    b = run_assimilation(model, dataset, filter="enkf", n_members=8, filter_seed=3)
-    c = run_assimilation(model, dataset, filter="enkf", n_members=8, filter_seed=4)
+    a = run_assimilation(model, dataset, kind="enkf", n_members=8, seed=3)
+    b = run_assimilation(model, dataset, kind="enkf", n_members=8, seed=3)
+    c = run_assimilation(model, dataset, kind="enkf", n_members=8, seed=4)
     np.testing.assert_array_equal(a.step_mse, b.step_mse)
     assert not np.array_equal(a.step_mse, c.step_mse)
     assert a.forecast_norm is None and a.max_forecast_norm is None
@@ -131,7 +131,7 @@ def test_enkf_run_is_reproducible_from_its_seed(models, dataset) -> None:
 
 def test_bad_configuration_is_refused(models, dataset) -> None:
     with pytest.raises(ValueError, match="unknown filter"):
-        AssimilationConfig(filter="ukf")
+        FilterConfig(kind="ukf")
     with pytest.raises(ValueError, match="noise_level"):
         AssimilationConfig(noise_level=0.0)
     with pytest.raises(ValueError, match="trajectories"):
@@ -150,7 +150,7 @@ def small_doc(models, dataset) -> dict:
     records = []
     for kind in ("koopman", "mlp"):
         for filt in ("forward", "ekf", "enkf"):
-            res = run_assimilation(models[kind], dataset, filter=filt, n_members=8)
+            res = run_assimilation(models[kind], dataset, kind=filt, n_members=8)
             records.append(make_record(res, experiment="main"))
     return new_results("burgers", "lite", dataset_identity(dataset), {"n_sensors": 16}, records)
 

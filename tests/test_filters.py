@@ -311,7 +311,7 @@ def test_enkf_converges_to_the_kalman_filter_at_the_monte_carlo_rate():
 
 
 def test_enkf_lorenz63_matches_dapper_pertobs_score():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "lorenz63_enkf.py"
+    path = Path(__file__).resolve().parents[1] / "validation" / "lorenz63_enkf.py"
     spec = importlib.util.spec_from_file_location("lorenz63_enkf", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)

@@ -90,7 +90,7 @@ def test_missing_openfoam_says_how_to_install(monkeypatch: pytest.MonkeyPatch, t
 
     monkeypatch.setenv("PATH", "")
     with pytest.raises(of.OpenFOAMMissing, match=r"apt-get install -y openfoam") as err:
-        generate_dambreak("small", progress=False)
+        generate_dambreak(get_benchmark("dambreak"), "small", progress=False)
     assert isinstance(err.value, GeneratorUnavailable)  # the CLI reports it as a clean error
     assert "interFoam" in str(err.value)
     out = tmp_path / "cylinder-small.h5"
@@ -273,7 +273,7 @@ def test_rerun_skips_finished_runs_and_reproduces_the_file(dambreak_small, tmp_p
     stamps = {p: p.stat().st_mtime_ns for p in kept}
     for p in removed:
         p.unlink()
-    data = generate_dambreak("small", seed=0, workdir=work, progress=False, workers=1)
+    data = generate_dambreak(get_benchmark("dambreak"), "small", seed=0, workdir=work, progress=False, workers=1)
     again = write_dataset(data, "dambreak", tmp_path / "again.h5")
     assert all(p.exists() for p in removed)
     assert {p: p.stat().st_mtime_ns for p in kept} == stamps  # finished runs were not redone
@@ -377,10 +377,11 @@ def test_dask_local_cluster_runs_real_cases(tmp_path: Path) -> None:
     settings = {"n_train": 1, "n_test": 1, "n_frames": 5}
     cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
     with cluster, distributed.Client(cluster) as client:
-        data = generate_dambreak("small", workdir=tmp_path / "dask", progress=False, settings=settings,
-                                 executor=client.get_executor())  # fmt: skip
+        data = generate_dambreak(get_benchmark("dambreak"), "small", workdir=tmp_path / "dask", progress=False,
+                                 settings=settings, executor=client.get_executor())  # fmt: skip
         on_dask = write_dataset(data, "dambreak", tmp_path / "dask.h5")
-    data = generate_dambreak("small", workdir=tmp_path / "local", progress=False, settings=settings, workers=1)
+    data = generate_dambreak(get_benchmark("dambreak"), "small", workdir=tmp_path / "local", progress=False,
+                             settings=settings, workers=1)  # fmt: skip
     _assert_same_file(on_dask, write_dataset(data, "dambreak", tmp_path / "local.h5"))
     with Dataset(on_dask) as ds:
         assert ds.fields("train").shape == (1, 5, 5, 64, 64) and ds.extras("test")["water_volume"].shape == (1, 6)

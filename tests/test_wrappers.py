@@ -13,6 +13,7 @@ from gymnasium.utils.env_checker import check_env
 import dks_gym  # noqa: F401
 from dks_gym.dataset import Dataset
 from dks_gym.models import build_model
+from dks_gym.assimilation import FilterConfig
 from dks_gym.wrappers import LatentFilter
 from dks_gym.wrappers.vector import LatentFilterVectorEnv, SB3VecEnv
 
@@ -37,11 +38,11 @@ def _run(env: gym.Env, seed: int, action=None) -> tuple[list[float], dict]:
     return rewards, info
 
 
-@pytest.mark.parametrize("kind, filt", [("koopman", "ekf"), ("koopman", "enkf"), ("koopman", "none"),
+@pytest.mark.parametrize("kind, filt", [("koopman", "ekf"), ("koopman", "enkf"), ("koopman", "forward"),
                                         ("mlp", "ekf"), ("xlstm", "ekf"), ("pdmd", "ekf"), ("pdmd", "enkf")])
 def test_check_env(models: dict, kind: str, filt: str) -> None:
     env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small", render_mode="rgb_array"), model=models[kind],
-                       filter=filt, n_members=8)
+                       filter=filt, config=FilterConfig(n_members=8))
     check_env(env, skip_render_check=False)
     obs, info = env.reset(seed=0)
     assert obs.shape == (16,) and obs.dtype == np.float32
@@ -64,7 +65,7 @@ def test_reward_is_minus_the_mse_of_the_estimate(models: dict) -> None:
 
 
 def test_belief_observation_is_mean_and_log_variance(models: dict) -> None:
-    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], filter="ekf", P0=0.5)
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], filter="ekf", config=FilterConfig(P0=0.5))
     obs, _ = env.reset(seed=0)
     np.testing.assert_allclose(obs[8:], np.log(0.5), rtol=1e-6)  # P0 = 0.5 I before any step
     obs, *_ = env.step(None)
@@ -73,9 +74,9 @@ def test_belief_observation_is_mean_and_log_variance(models: dict) -> None:
 
 
 def test_forward_run_is_the_model_rollout(models: dict) -> None:
-    """filter='none' is the same loop with the update off: its mean is the open-loop latent rollout."""
+    """filter='forward' is the same loop with the update off: its mean is the open-loop latent rollout."""
     model = models["mlp"]
-    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="none")
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="forward")
     env.reset(seed=0)
     z0 = env.filter.mean.clone()
     for _ in range(5):
@@ -114,7 +115,7 @@ def test_wrong_model_is_refused(models: dict, burgers_small: Path) -> None:
         LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model="transformer")
 
 
-@pytest.mark.parametrize("filt", ["ekf", "none"])
+@pytest.mark.parametrize("filt", ["ekf", "forward"])
 def test_vector_env_equals_independent_wrappers(models: dict, filt: str) -> None:
     """One batched filter over 3 envs gives what 3 separate LatentFilter wrappers give."""
     model = models["koopman"]
@@ -159,10 +160,10 @@ def test_koopman_ekf_beats_its_forward_run_on_burgers(burgers_small: Path, tmp_p
     model = train_model("burgers", "koopman", r=32, preset="lite", dataset=ds, steps=300, progress=False,
                         path=path).model
     finals = {}
-    for filt in ("none", "ekf"):
+    for filt in ("forward", "ekf"):
         env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter=filt)
         finals[filt] = np.mean([_final(env, t) for t in range(3)])
-    assert finals["ekf"] < 0.5 * finals["none"], finals
+    assert finals["ekf"] < 0.5 * finals["forward"], finals
 
 
 def _final(env: gym.Env, trajectory: int) -> float:
@@ -193,7 +194,8 @@ def test_initial_latent_recomputed_from_encode(models: dict, kind: str) -> None:
         by_hand = model.encode(first, torch.from_numpy(np.asarray(ds.params("train"), dtype=np.float32))).mean(0)
     torch.testing.assert_close(env.filter.mean[0], by_hand, rtol=1e-5, atol=1e-6)
 
-    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="none", initial="exact")
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="forward",
+                       config=FilterConfig(initial="exact"))
     env.reset(seed=0, options={"trajectory": 1})
     x0 = torch.from_numpy(np.asarray(ds.fields("test")[1, 0], dtype=np.float32))
     np.testing.assert_array_equal(x0.numpy(), env.unwrapped.true_state)
@@ -224,7 +226,8 @@ def test_observation_jacobian_is_autograd_of_decode_at_the_sensors(models: dict,
 def test_one_ekf_step_recomputed_by_hand(models: dict, kind: str) -> None:
     """Forecast (Eq. 13-14) and update (Eq. 15-17) from autograd Jacobians equal the wrapper's first step."""
     model = models[kind]
-    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf", P0=0.5, Q=1e-3)
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf",
+                       config=FilterConfig(P0=0.5, Q=1e-3))
     env.reset(seed=4, options={"trajectory": 2})
     z0 = env.filter.mean[0].detach().clone()
     env.step(None)
@@ -251,13 +254,13 @@ def test_koopman_operator_computed_once_per_episode(models: dict, monkeypatch: p
     """For a fixed mu the Koopman K(mu) is built at reset and handed to the EKF as a constant tensor."""
     model = models["koopman"]
     calls = []
-    original = model.forecast_jacobian
+    original = model.filter_forecast_jacobian
 
-    def counting(z, mu):
-        calls.append(z.shape)
-        return original(z, mu)
+    def counting(mu):
+        calls.append(mu.shape)
+        return original(mu)
 
-    monkeypatch.setattr(model, "forecast_jacobian", counting)
+    monkeypatch.setattr(model, "filter_forecast_jacobian", counting)
     env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf")
     env.reset(seed=0)
     for _ in range(10):
@@ -273,7 +276,7 @@ def test_koopman_operator_computed_once_per_episode(models: dict, monkeypatch: p
 def test_spread_and_wall_time_diagnostics(models: dict, filt: str) -> None:
     """spread = sqrt(mean variance): of the ensemble (ddof 1) for the EnKF, of diag P for the EKF."""
     env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], filter=filt,
-                       n_members=8)
+                       config=FilterConfig(n_members=8))
     env.reset(seed=0)
     for _ in range(5):
         _, _, _, _, info = env.step(None)
@@ -299,22 +302,23 @@ def test_spread_and_wall_time_diagnostics(models: dict, filt: str) -> None:
     ({"P0": torch.eye(8) + torch.triu(torch.ones(8, 8), 1)}, "P0"),  # not symmetric
     ({"Q": -1e-4}, "Q"), ({"Q": float("nan")}, "Q"), ({"Q": float("inf")}, "Q"),
     ({"Q": torch.diag(torch.tensor([1.0, -1.0, 1, 1, 1, 1, 1, 1]))}, "Q"),
-    ({"n_members": 1, "filter": "enkf"}, "n_members"), ({"n_members": 2.5, "filter": "enkf"}, "n_members"),
-    ({"inflation": 0.9, "filter": "enkf"}, "inflation"), ({"inflation": float("nan")}, "inflation"),
+    ({"n_members": 1, "kind": "enkf"}, "n_members"), ({"n_members": 2.5, "kind": "enkf"}, "n_members"),
+    ({"inflation": 0.9, "kind": "enkf"}, "inflation"), ({"inflation": float("nan")}, "inflation"),
     ({"inflation": float("inf")}, "inflation"), ({"on_divergence": "ignore"}, "on_divergence"),
 ])
 def test_bad_filter_options_raise_at_construction(models: dict, kwargs: dict, name: str) -> None:
-    """Refused when the wrapper (or the vector env) is built, not first at reset()."""
+    """Refused when the filter configuration is built (so before any wrapper or vector env), not first at reset()."""
     with pytest.raises(ValueError, match=name):
-        LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], **kwargs)
+        LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], config=FilterConfig(**kwargs))
     with pytest.raises(ValueError, match=name):
-        LatentFilterVectorEnv("burgers", 2, model=models["koopman"], preset="small", **kwargs)
+        LatentFilterVectorEnv("burgers", 2, model=models["koopman"], preset="small", config=FilterConfig(**kwargs))
 
 
 def test_valid_edge_options_are_accepted(models: dict) -> None:
     """Q = 0 (PSD), n_members = 2, inflation = 1 and matrix P0/Q are valid."""
     env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], filter="enkf",
-                       Q=0.0, n_members=2, inflation=1.0, P0=torch.diag(torch.linspace(0.5, 1.0, 8)))
+                       config=FilterConfig(Q=0.0, n_members=2, inflation=1.0,
+                                           P0=torch.diag(torch.linspace(0.5, 1.0, 8))))
     env.reset(seed=0)
     env.step(None)
     np.testing.assert_allclose(np.diag(env.filter.cov[0].numpy()) > 0, True)

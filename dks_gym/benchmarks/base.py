@@ -1,13 +1,21 @@
 """What every benchmark is: a fixed grid, named channels, a parameter range and a data generator.
 
 A benchmark module (``burgers.py``, ``cylinder.py`` ...) defines one :class:`Benchmark` subclass holding
-the numbers of SPEC section 1, the geometry (coordinates, cell types), the paper's sensor layout
-(SPEC section 2) and a generator that yields trajectories. Benchmarks never touch HDF5: the dataset
-layer (:mod:`dks_gym.dataset`) consumes what :meth:`Benchmark.generate` yields and stores it.
+the numbers of SPEC section 1, the geometry (coordinates, cell types) and the paper's sensor layout
+(SPEC section 2), and names its data generator by entry point (``"module:function"``). Benchmarks never
+touch HDF5: the dataset layer (:mod:`dks_gym.dataset`) consumes what :meth:`Benchmark.generate` yields
+and stores it.
+
+The generators of the CFD benchmarks live in :mod:`dks_gym.solvers`, which imports the benchmarks for
+their geometry; naming them by string (as Gymnasium names env classes) keeps the benchmarks from
+importing the solvers back, and keeps OpenFOAM's and the lattice Boltzmann solver's imports out of
+``import dks_gym.benchmarks``.
 """
 
 from __future__ import annotations
 
+import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -64,6 +72,9 @@ class Benchmark:
     cell_type_codes: dict[str, int] = field(default_factory=dict)
     # Cell-type codes of solid cells (bodies, obstacles): never fluid, never a sensor.
     solid_codes: tuple[int, ...] = ()
+    # The data generator as "module:function", called as function(benchmark, preset, seed=..., workdir=...,
+    # progress=..., **options) -> GeneratedData; None where this version of dks-gym has none.
+    generator_entry_point: str | None = None
 
     @property
     def ndim(self) -> int:
@@ -105,7 +116,7 @@ class Benchmark:
     @property
     def generator_available(self) -> bool:
         """Whether this version of dks-gym can generate the benchmark's data."""
-        return type(self).generate is not Benchmark.generate
+        return self.generator_entry_point is not None
 
     def generate(
         self,
@@ -116,12 +127,28 @@ class Benchmark:
         progress: bool = True,
         **options: Any,
     ) -> GeneratedData:
-        """Generate the benchmark's trajectories for ``preset`` ("paper" or "small")."""
-        raise GeneratorUnavailable(
-            f"The {self.name} data generator is not part of this version of dks-gym. "
-            f"Once it is, `dks-gym data generate {self.name}` will create the dataset; "
-            "if you already have a file in the dks-gym HDF5 schema, pass it with data_path=..."
-        )
+        """Generate the benchmark's trajectories for ``preset`` ("paper" or "small") with its generator.
+
+        ``workdir`` is where a generator may cache work (the OpenFOAM runs); ``options`` are the
+        generator's own (``workers`` for the OpenFOAM benchmarks, ``device`` for the torch solvers ...),
+        see the function :attr:`generator_entry_point` names.
+        """
+        if self.generator_entry_point is None:
+            raise GeneratorUnavailable(
+                f"The {self.name} data generator is not part of this version of dks-gym. "
+                f"Once it is, `dks-gym data generate {self.name}` will create the dataset; "
+                "if you already have a file in the dks-gym HDF5 schema, pass it with data_path=..."
+            )
+        generate = load_generator(self.generator_entry_point)
+        return generate(self, preset, seed=seed, workdir=workdir, progress=progress, **options)
+
+
+def load_generator(entry_point: str) -> Callable[..., GeneratedData]:
+    """The function an entry point ``"package.module:function"`` names, its module imported on first use."""
+    module, _, name = entry_point.partition(":")
+    if not module or not name:
+        raise ValueError(f"a generator entry point reads 'package.module:function', got {entry_point!r}")
+    return getattr(importlib.import_module(module), name)
 
 
 def check_preset(preset: str) -> str:

@@ -5,19 +5,21 @@ Every trajectory starts from u0 = sin x + 0.5 cos 2x and differs only through th
 finite-difference scheme (:func:`solve`): first-order upwind advection of the non-conservative form
 u u_x, second-order central diffusion, advective Courant number 0.1 and diffusive factor 0.45.
 :func:`exact_solution` is the Cole-Hopf solution, evaluated independently of the scheme, against which
-the scheme is verified (``benchmarks/burgers_convergence.py``).
+the scheme is verified (``validation/burgers_convergence.py``).
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
-import torch
 
 from .base import Benchmark, GeneratedData, check_preset, interleaved_sweep
+
+if TYPE_CHECKING:
+    import torch
 
 GENERATOR_VERSION = "1"
 
@@ -81,6 +83,10 @@ def solve(
     times is cut into ceil(interval / dt_limit) equal substeps so frames land exactly on ``times``.
     All trajectories advance together (float64 on ``device``); the result is float64 on the CPU.
     """
+    # torch is imported where it is used: `import dks_gym` (which imports the benchmarks to register the
+    # envs) stays free of it.
+    import torch
+
     nu = _check_nu(nu)
     times = _check_times(times)
     if isinstance(nx, bool) or not isinstance(nx, (int, np.integer)) or nx < 3:
@@ -155,6 +161,8 @@ def _upwind_step(
     max(u,0) d- + min(u,0) d+ equals u d+ - max(u,0) lap, so
     u_i <- u_i + (b + a max(u_i,0)) lap - a u_i d+, which needs no branch and few passes.
     """
+    import torch
+
     torch.sub(u[:, 1:], u[:, :-1], out=diff)
     torch.sub(diff[:, 1:], diff[:, :-1], out=lap)
     c = u[:, 1:-1]
@@ -230,6 +238,69 @@ def exact_solution(x: np.ndarray, t: float, nu: float, *, refine: float = 1.0) -
     return u.reshape(x.shape)
 
 
+def generate_burgers(
+    benchmark: Benchmark,
+    preset: str = "paper",
+    *,
+    seed: int = 0,
+    workdir: Path | None = None,
+    progress: bool = True,
+    device: str | torch.device = "cpu",
+    **options: Any,
+) -> GeneratedData:
+    """Solve Burgers for the preset's viscosities ("paper": 50 train / 10 test; "small": 6 / 3).
+
+    The generator of :data:`BURGERS` (``BURGERS.generate(...)`` calls it with the benchmark).
+    Viscosities come from :func:`interleaved_sweep` with ``np.random.default_rng(seed)``; the grid
+    and the 100 frames are the same for both presets. The solve (about 4 s for "paper" on one CPU
+    core) runs when ``trajectories`` is first iterated. ``workdir`` is unused (nothing is cached).
+    """
+    check_preset(preset)
+    if options:
+        raise ValueError(
+            f"unknown option(s) for the burgers generator: {', '.join(sorted(options))}; "
+            "it accepts preset, seed, workdir, progress and device"
+        )
+    n_train, n_test = PRESET_COUNTS[preset]
+    low, high = benchmark.param_range
+    nu_train, nu_test = interleaved_sweep(low, high, n_train, n_test, np.random.default_rng(seed))
+    time = benchmark.dt * np.arange(benchmark.n_frames)
+    (nx,) = benchmark.grid
+
+    # Solved on first use, so parameters and metadata are available without the (seconds-long) run.
+    def trajectories() -> Iterator[tuple[str, int, np.ndarray]]:
+        u = solve(np.concatenate([nu_train, nu_test]), time, nx=nx, progress=progress, device=device)
+        fields = u[:, :, None, :].astype(np.float32)  # (n, n_t, C=1, nx)
+        for i in range(n_train):
+            yield "train", i, fields[i]
+        for i in range(n_test):
+            yield "test", i, fields[n_train + i]
+
+    generator: dict[str, Any] = {
+        "name": __name__,
+        "version": GENERATOR_VERSION,
+        "preset": preset,
+        "seed": int(seed),
+        "scheme": "explicit Euler; first-order upwind u*u_x (non-conservative, upwind by sign of u_i); "
+        "second-order central nu*u_xx; periodic",
+        "courant": COURANT,
+        "diffusive_factor": DIFFUSIVE_FACTOR,
+        "dt_rule": "dt_limit = min(courant*dx/max|u0|, diffusive_factor*dx^2/nu); "
+        "n_sub = ceil(frame_dt/dt_limit) equal substeps per frame",
+        "u0": U0_FORMULA,
+        "nx": nx,
+        "precision": "float64 solve, float32 storage",
+    }
+    return GeneratedData(
+        time=time,
+        params={"train": nu_train, "test": nu_test},
+        trajectories=trajectories(),
+        generator=generator,
+        coords=benchmark.coords(),
+        cell_type=None,
+    )
+
+
 class BurgersBenchmark(Benchmark):
     """1D viscous Burgers, 1024 periodic points, nu in [0.01, 1], 100 frames spaced 0.005 from t = 0."""
 
@@ -252,67 +323,6 @@ class BurgersBenchmark(Benchmark):
         # to nx, which is grid point 0 on the periodic grid.
         return np.sort(np.floor((np.arange(m) + 0.5) * nx / m + 0.5).astype(np.int64) % nx)
 
-    def generate(
-        self,
-        preset: str = "paper",
-        *,
-        seed: int = 0,
-        workdir: Path | None = None,
-        progress: bool = True,
-        device: str | torch.device = "cpu",
-        **options: Any,
-    ) -> GeneratedData:
-        """Solve Burgers for the preset's viscosities ("paper": 50 train / 10 test; "small": 6 / 3).
-
-        Viscosities come from :func:`interleaved_sweep` with ``np.random.default_rng(seed)``; the grid
-        and the 100 frames are the same for both presets. The solve (about 4 s for "paper" on one CPU
-        core) runs when ``trajectories`` is first iterated. ``workdir`` is unused (nothing is cached).
-        """
-        check_preset(preset)
-        if options:
-            raise ValueError(
-                f"unknown option(s) for the burgers generator: {', '.join(sorted(options))}; "
-                "it accepts preset, seed, workdir, progress and device"
-            )
-        n_train, n_test = PRESET_COUNTS[preset]
-        low, high = self.param_range
-        nu_train, nu_test = interleaved_sweep(low, high, n_train, n_test, np.random.default_rng(seed))
-        time = self.dt * np.arange(self.n_frames)
-        (nx,) = self.grid
-
-        # Solved on first use, so parameters and metadata are available without the (seconds-long) run.
-        def trajectories() -> Iterator[tuple[str, int, np.ndarray]]:
-            u = solve(np.concatenate([nu_train, nu_test]), time, nx=nx, progress=progress, device=device)
-            fields = u[:, :, None, :].astype(np.float32)  # (n, n_t, C=1, nx)
-            for i in range(n_train):
-                yield "train", i, fields[i]
-            for i in range(n_test):
-                yield "test", i, fields[n_train + i]
-
-        generator: dict[str, Any] = {
-            "name": __name__,
-            "version": GENERATOR_VERSION,
-            "preset": preset,
-            "seed": int(seed),
-            "scheme": "explicit Euler; first-order upwind u*u_x (non-conservative, upwind by sign of u_i); "
-            "second-order central nu*u_xx; periodic",
-            "courant": COURANT,
-            "diffusive_factor": DIFFUSIVE_FACTOR,
-            "dt_rule": "dt_limit = min(courant*dx/max|u0|, diffusive_factor*dx^2/nu); "
-            "n_sub = ceil(frame_dt/dt_limit) equal substeps per frame",
-            "u0": U0_FORMULA,
-            "nx": nx,
-            "precision": "float64 solve, float32 storage",
-        }
-        return GeneratedData(
-            time=time,
-            params={"train": nu_train, "test": nu_test},
-            trajectories=trajectories(),
-            generator=generator,
-            coords=self.coords(),
-            cell_type=None,
-        )
-
 
 BURGERS = BurgersBenchmark(
     name="burgers",
@@ -327,4 +337,5 @@ BURGERS = BurgersBenchmark(
     n_frames=100,
     n_train=50,
     n_test=10,
+    generator_entry_point="dks_gym.benchmarks.burgers:generate_burgers",
 )

@@ -16,24 +16,19 @@ Cell types (SPEC section 1), decided on cell centres:
 The sensor layout (SPEC section 2, paper Fig. 2a) follows from the geometry, see
 :meth:`CylinderBenchmark.layout_groups`. The geometry helpers live in :mod:`dks_gym.benchmarks.layout`.
 
-The data come from OpenFOAM's pimpleFoam, one run per Reynolds number: :meth:`CylinderBenchmark.generate`
-calls :func:`dks_gym.solvers.cylinder_case.generate_cylinder` (case set-up, spin-up detection, mesh study:
+The data come from OpenFOAM's pimpleFoam, one run per Reynolds number: ``CYLINDER.generate(...)`` calls
+:func:`dks_gym.solvers.cylinder_case.generate_cylinder` (case set-up, spin-up detection, mesh study:
 docs/cfd.md).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from functools import cached_property
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from .base import Benchmark, GeneratedData
 from .layout import (
-    cell_centres,
+    CellGridBenchmark,
     check_layout,
     check_sensor_count,
     equidistant_cells,
@@ -55,27 +50,23 @@ MAX_SENSORS = 32
 
 
 # The benchmark ----------------------------------------------------------------------------------------
-class CylinderBenchmark(Benchmark):
-    """2D flow past a cylinder, 64 x 64 cells over [-8, 16] x [-4, 4], Re in [59.5, 990.5]."""
+class CylinderBenchmark(CellGridBenchmark):
+    """2D flow past a cylinder, 64 x 64 cells over [-8, 16] x [-4, 4], Re in [59.5, 990.5].
 
-    def coords(self) -> tuple[np.ndarray, ...]:
-        """(x, y) cell centres: x_i = -8 + (i + 1/2) 0.375, y_j = -4 + (j + 1/2) 0.125."""
-        return cell_centres(EXTENT, self.grid)
+    Cell centres x_i = -8 + (i + 1/2) 0.375, y_j = -4 + (j + 1/2) 0.125; cell types {0 interior, 1 wall,
+    2 body, 3 inlet, 4 outlet}; the paper layout (Fig. 2a) is the surface sensors, then the wake sensors.
+    """
 
-    def cell_type(self) -> np.ndarray:
-        """Cell-type codes {0 interior, 1 wall, 2 body, 3 inlet, 4 outlet}, int8 (64, 64), read-only."""
-        return self._cell_type
+    extent = EXTENT
 
-    @cached_property
-    def _cell_type(self) -> np.ndarray:
+    def mark_cells(self, ct: np.ndarray) -> np.ndarray:
+        """Inlet and outlet columns, then the wall rows (corners included), then the body."""
         x, y = np.meshgrid(*self.coords(), indexing="ij")
         codes = self.cell_type_codes
-        ct = np.full(self.grid, codes["interior"], dtype=np.int8)
         ct[0, :] = codes["inlet"]
         ct[-1, :] = codes["outlet"]
         ct[:, [0, -1]] = codes["wall"]  # after inlet/outlet: the corners belong to the walls
         ct[x**2 + y**2 < RADIUS**2] = codes["body"]
-        ct.setflags(write=False)
         return ct
 
     def layout_groups(self, m: int = 16) -> dict[str, np.ndarray]:
@@ -129,46 +120,6 @@ class CylinderBenchmark(Benchmark):
         check_layout(self, groups, m)
         return groups
 
-    def paper_layout(self, m: int = 16) -> np.ndarray:
-        """The paper's layout (Fig. 2a): surface sensors, then wake sensors; see :meth:`layout_groups`."""
-        return np.concatenate(list(self.layout_groups(m).values()))
-
-    def generate(
-        self,
-        preset: str = "paper",
-        *,
-        seed: int = 0,
-        workdir: Path | None = None,
-        progress: bool = True,
-        workers: int = 1,
-        executor: Any = None,
-        settings: Mapping[str, Any] | None = None,
-        keep_cases: bool = False,
-        **options: Any,
-    ) -> GeneratedData:
-        """Run the cylinder sweep for ``preset`` with OpenFOAM's pimpleFoam (paper: 90 + 11 runs, small: 3 + 2).
-
-        Calls :func:`dks_gym.solvers.cylinder_case.generate_cylinder` (details there and in docs/cfd.md):
-        OpenFOAM must be installed (otherwise :class:`~dks_gym.solvers.openfoam.OpenFOAMMissing`, a
-        GeneratorUnavailable, says how). Runs are cached under ``workdir`` so an interrupted generation
-        resumes. ``workers`` is the size of the process pool (1 runs in this process); ``executor`` is
-        any :class:`concurrent.futures.Executor` instead (e.g. ``dask.distributed.Client.get_executor()``,
-        whose workers must see ``workdir``). ``settings`` overrides solver settings of the preset;
-        ``keep_cases`` keeps every OpenFOAM case directory. Per-run series
-        (``lift``, ``drag``, ``t_start``) come back in ``extras``.
-        """
-        if options:
-            raise ValueError(
-                f"unknown option(s) for the {self.name} generator: {', '.join(sorted(options))}; "
-                "it accepts preset, seed, workdir, progress, workers, executor, settings and keep_cases"
-            )
-        from ..solvers.cylinder_case import generate_cylinder  # lazy: the solvers import this module
-
-        return generate_cylinder(
-            preset, seed, workdir, progress, workers=workers, executor=executor, benchmark=self,
-            settings=settings, keep_cases=keep_cases,
-        )  # fmt: skip
-
 
 CYLINDER = CylinderBenchmark(
     name="cylinder",
@@ -185,4 +136,5 @@ CYLINDER = CylinderBenchmark(
     n_test=11,
     cell_type_codes=dict(CELL_TYPE_CODES),
     solid_codes=(CELL_TYPE_CODES["body"],),
+    generator_entry_point="dks_gym.solvers.cylinder_case:generate_cylinder",
 )

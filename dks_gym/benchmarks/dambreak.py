@@ -15,22 +15,16 @@ Cell types (SPEC section 1), decided on cell centres:
 * 0 interior: everything else.
 
 The sensor layout (SPEC section 2) is :meth:`DambreakBenchmark.layout_groups`. The data come from
-OpenFOAM's interFoam, one run per water viscosity: :meth:`DambreakBenchmark.generate` calls
+OpenFOAM's interFoam, one run per water viscosity: ``DAMBREAK.generate(...)`` calls
 :func:`dks_gym.solvers.dambreak_case.generate_dambreak` (case set-up and validation: docs/cfd.md).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from functools import cached_property
-from pathlib import Path
-from typing import Any
-
 import numpy as np
 
-from .base import Benchmark, GeneratedData
 from .layout import (
-    cell_centres,
+    CellGridBenchmark,
     check_layout,
     check_sensor_count,
     equidistant_cells,
@@ -47,27 +41,23 @@ CELL_TYPE_CODES = {"interior": 0, "wall": 1, "obstacle": 2, "atmosphere": 3}
 MAX_SENSORS = 32
 
 
-class DambreakBenchmark(Benchmark):
-    """2D two-phase dambreak, 64 x 64 cells over the 0.584 m damBreak box, nu_w in [1e-3, 9.9e-2] m^2/s."""
+class DambreakBenchmark(CellGridBenchmark):
+    """2D two-phase dambreak, 64 x 64 cells over the 0.584 m damBreak box, nu_w in [1e-3, 9.9e-2] m^2/s.
 
-    def coords(self) -> tuple[np.ndarray, ...]:
-        """(x, y) cell centres in metres: (i + 1/2) 0.009125."""
-        return cell_centres(EXTENT, self.grid)
+    Cell centres (i + 1/2) 0.009125 m in x and y; cell types {0 interior, 1 wall, 2 obstacle, 3 atmosphere};
+    the paper layout (Fig. 2b) is the bottom sensors by x, then the obstacle sensors.
+    """
 
-    def cell_type(self) -> np.ndarray:
-        """Cell-type codes {0 interior, 1 wall, 2 obstacle, 3 atmosphere}, int8 (64, 64), read-only."""
-        return self._cell_type
+    extent = EXTENT
 
-    @cached_property
-    def _cell_type(self) -> np.ndarray:
+    def mark_cells(self, ct: np.ndarray) -> np.ndarray:
+        """The open top row, then the side walls and the floor (top corners included), then the obstacle."""
         x, y = np.meshgrid(*self.coords(), indexing="ij")
         codes = self.cell_type_codes
-        ct = np.full(self.grid, codes["interior"], dtype=np.int8)
         ct[:, -1] = codes["atmosphere"]
         ct[[0, -1], :] = codes["wall"]  # after the atmosphere: the top corners belong to the side walls
         ct[:, 0] = codes["wall"]
         ct[(x >= OBSTACLE_X[0]) & (x <= OBSTACLE_X[1]) & (y <= OBSTACLE_HEIGHT)] = codes["obstacle"]
-        ct.setflags(write=False)
         return ct
 
     def obstacle_columns(self) -> np.ndarray:
@@ -131,46 +121,6 @@ class DambreakBenchmark(Benchmark):
         check_layout(self, groups, m)
         return groups
 
-    def paper_layout(self, m: int = 16) -> np.ndarray:
-        """The paper's layout (Fig. 2b): bottom sensors by x, then obstacle sensors; see :meth:`layout_groups`."""
-        return np.concatenate(list(self.layout_groups(m).values()))
-
-    def generate(
-        self,
-        preset: str = "paper",
-        *,
-        seed: int = 0,
-        workdir: Path | None = None,
-        progress: bool = True,
-        workers: int = 1,
-        executor: Any = None,
-        settings: Mapping[str, Any] | None = None,
-        keep_cases: bool = False,
-        **options: Any,
-    ) -> GeneratedData:
-        """Run the dambreak sweep for ``preset`` with OpenFOAM's interFoam (paper: 90 + 11 runs, small: 3 + 2).
-
-        Calls :func:`dks_gym.solvers.dambreak_case.generate_dambreak` (details there and in docs/cfd.md):
-        OpenFOAM must be installed (otherwise :class:`~dks_gym.solvers.openfoam.OpenFOAMMissing`, a
-        GeneratorUnavailable, says how). Runs are cached under ``workdir`` so an interrupted generation
-        resumes. ``workers`` is the size of the process pool (1 runs in this process); ``executor`` is
-        any :class:`concurrent.futures.Executor` instead (e.g. ``dask.distributed.Client.get_executor()``,
-        whose workers must see ``workdir``). ``settings`` overrides solver settings of the preset;
-        ``keep_cases`` keeps every OpenFOAM case directory. Per-run series
-        (``water_volume``, ``water_outflow``, ``surge_front``) come back in ``extras``.
-        """
-        if options:
-            raise ValueError(
-                f"unknown option(s) for the {self.name} generator: {', '.join(sorted(options))}; "
-                "it accepts preset, seed, workdir, progress, workers, executor, settings and keep_cases"
-            )
-        from ..solvers.dambreak_case import generate_dambreak  # lazy: the solvers import this module
-
-        return generate_dambreak(
-            preset, seed, workdir, progress, workers=workers, executor=executor, benchmark=self,
-            settings=settings, keep_cases=keep_cases,
-        )  # fmt: skip
-
 
 def _mirror_about_column(flat: list[int], grid: tuple[int, ...], centre: int) -> np.ndarray:
     """Flat indices reflected across grid column ``centre`` (i -> 2 centre - i)."""
@@ -193,4 +143,5 @@ DAMBREAK = DambreakBenchmark(
     n_test=11,
     cell_type_codes=dict(CELL_TYPE_CODES),
     solid_codes=(CELL_TYPE_CODES["obstacle"],),
+    generator_entry_point="dks_gym.solvers.dambreak_case:generate_dambreak",
 )

@@ -1,14 +1,54 @@
-"""Geometry helpers for the paper sensor layouts: cell centres, equidistant cells, snapping, mirroring.
+"""The CFD benchmarks' common ground: a box of uniform cells with cell types, and the layout helpers.
 
-Shared by the CFD benchmarks; each benchmark module states its own layout rule with these pieces.
+:class:`CellGridBenchmark` is what the cylinder, dambreak and sphere share (cell-centre coordinates over
+a box, cell-type codes computed once, a paper layout made of named groups); the functions (equidistant
+cells, snapping, mirroring) are the pieces each benchmark module states its own layout rule with.
 """
 
 from __future__ import annotations
 
+from functools import cached_property
+from typing import ClassVar
+
 import numpy as np
-from scipy import ndimage
 
 from .base import Benchmark
+
+
+class CellGridBenchmark(Benchmark):
+    """A benchmark on a uniform grid of cells over the box :attr:`extent`, with cell types and a layout rule.
+
+    A subclass sets :attr:`extent` (``((x0, x1), (y0, y1)[, (z0, z1)])`` in physical units) and defines
+    :meth:`mark_cells` (its cell-type codes) and :meth:`layout_groups` (its paper layout, in named parts).
+    """
+
+    extent: ClassVar[tuple[tuple[float, float], ...]] = ()
+
+    def coords(self) -> tuple[np.ndarray, ...]:
+        """Cell-centre coordinates x0 + (i + 1/2) dx over :attr:`extent`, one 1D array per axis."""
+        return cell_centres(self.extent, self.grid)
+
+    def cell_type(self) -> np.ndarray:
+        """Cell-type codes (:attr:`cell_type_codes`, see :meth:`mark_cells`), int8 on the grid, read-only."""
+        return self._cell_type
+
+    @cached_property
+    def _cell_type(self) -> np.ndarray:
+        ct = self.mark_cells(np.full(self.grid, self.cell_type_codes["interior"], dtype=np.int8))
+        ct.setflags(write=False)
+        return ct
+
+    def mark_cells(self, ct: np.ndarray) -> np.ndarray:
+        """Write the non-interior cell-type codes into ``ct`` (all "interior" on entry) and return it."""
+        raise NotImplementedError
+
+    def layout_groups(self, m: int = 16) -> dict[str, np.ndarray]:
+        """The paper layout of ``m`` sensors split into its named parts (flat indices)."""
+        raise NotImplementedError
+
+    def paper_layout(self, m: int = 16) -> np.ndarray:
+        """The paper's layout: the parts of :meth:`layout_groups`, concatenated in their order."""
+        return np.concatenate(list(self.layout_groups(m).values()))
 
 
 def cell_centres(extent: tuple[tuple[float, float], ...], grid: tuple[int, ...]) -> tuple[np.ndarray, ...]:
@@ -75,6 +115,8 @@ def mirror(flat: list[int] | np.ndarray, grid: tuple[int, ...], axis: int) -> np
 
 def surface_mask(solid: np.ndarray) -> np.ndarray:
     """Non-solid cells that share a face, edge or corner with a solid cell (one cell diagonal away)."""
+    from scipy import ndimage  # here, not at module level: `import dks_gym` stays free of scipy
+
     return ndimage.binary_dilation(solid, structure=np.ones((3,) * solid.ndim, dtype=bool)) & ~solid
 
 

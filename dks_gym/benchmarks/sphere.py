@@ -14,25 +14,20 @@ Cell types (SPEC section 1), decided on cell centres:
   slip or periodic) and so carry no code of their own.
 
 The sensor layout (SPEC section 2, paper Fig. 2c) is :meth:`SphereBenchmark.layout_groups`. The data
-come from the batched lattice Boltzmann solver (:mod:`dks_gym.solvers.lbm`, case setup in
+come from the batched lattice Boltzmann solver (:mod:`dks_gym.solvers.lbm`, case setup and generator in
 :mod:`dks_gym.solvers.sphere_case`): velocity inlet at x = -8R, no-slip walls at y = +-4R, periodic
-z faces, pressure outlet behind a 4R absorbing layer beyond x = 16R; see :meth:`SphereBenchmark.generate` and
-docs/sphere.md.
+z faces, pressure outlet behind a 4R absorbing layer beyond x = 16R; see
+:func:`dks_gym.solvers.sphere_case.generate_sphere` and docs/sphere.md.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
-from functools import cached_property
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from .base import Benchmark, GeneratedData, check_preset, interleaved_sweep
 from .layout import (
-    cell_centres,
+    CellGridBenchmark,
     check_layout,
     check_sensor_count,
     equidistant_cells,
@@ -53,38 +48,26 @@ BLOCKAGE = math.pi * RADIUS**2 / ((EXTENT[1][1] - EXTENT[1][0]) * (EXTENT[2][1] 
 # The layout rule is defined up to twice the paper's 16 sensors; pass explicit indices for more.
 MAX_SENSORS = 32
 
-GENERATOR_VERSION = "1"
-# Solver settings per preset (see dks_gym.solvers.sphere_case): lattice nodes per R, lattice inflow speed,
-# spin-up (R/U) before the first frame, frames; trajectory counts (n_train, n_test).
-PRESET_SETTINGS: dict[str, dict[str, Any]] = {
-    "paper": {"resolution": 8, "u_lattice": 0.05, "spin_up": 50.0, "n_frames": 100},
-    "small": {"resolution": 2, "u_lattice": 0.1, "spin_up": 10.0, "n_frames": 10},
-}
-PRESET_COUNTS = {"paper": (90, 11), "small": (4, 2)}
 
+class SphereBenchmark(CellGridBenchmark):
+    """3D flow past a sphere, 64^3 cells over [-8, 16] x [-4, 4] x [-4, 4], Re in [59.5, 990.5].
 
-class SphereBenchmark(Benchmark):
-    """3D flow past a sphere, 64^3 cells over [-8, 16] x [-4, 4] x [-4, 4], Re in [59.5, 990.5]."""
+    Cell centres x_i = -8 + (i + 1/2) 0.375, y_j and z_k = -4 + (j + 1/2) 0.125; cell types {0 interior,
+    1 wall, 2 body, 3 inlet, 4 outlet}; the paper layout (Fig. 2c) is the surface sensors, then the wake
+    sensors.
+    """
 
-    def coords(self) -> tuple[np.ndarray, ...]:
-        """(x, y, z) cell centres: x_i = -8 + (i + 1/2) 0.375, y_j and z_k = -4 + (j + 1/2) 0.125."""
-        return cell_centres(EXTENT, self.grid)
+    extent = EXTENT
 
-    def cell_type(self) -> np.ndarray:
-        """Cell-type codes {0 interior, 1 wall, 2 body, 3 inlet, 4 outlet}, int8 (64, 64, 64), read-only."""
-        return self._cell_type
-
-    @cached_property
-    def _cell_type(self) -> np.ndarray:
+    def mark_cells(self, ct: np.ndarray) -> np.ndarray:
+        """Inlet and outlet faces, then the two y walls (shared edges included), then the body."""
         x, y, z = self.coords()
         codes = self.cell_type_codes
-        ct = np.full(self.grid, codes["interior"], dtype=np.int8)
         ct[0] = codes["inlet"]
         ct[-1] = codes["outlet"]
         ct[:, [0, -1], :] = codes["wall"]  # after inlet/outlet: the shared edges belong to the walls
         body = x[:, None, None] ** 2 + y[None, :, None] ** 2 + z[None, None, :] ** 2 < RADIUS**2
         ct[body] = codes["body"]
-        ct.setflags(write=False)
         return ct
 
     def layout_groups(self, m: int = 16) -> dict[str, np.ndarray]:
@@ -152,98 +135,6 @@ class SphereBenchmark(Benchmark):
         flip_z = mirror(octant_cells, self.grid, axis=2)
         return interleave(octant_cells, flip_y, flip_z, mirror(flip_y, self.grid, axis=2))
 
-    def paper_layout(self, m: int = 16) -> np.ndarray:
-        """The paper's layout (Fig. 2c): surface sensors, then wake sensors; see :meth:`layout_groups`."""
-        return np.concatenate(list(self.layout_groups(m).values()))
-
-    def generate(
-        self,
-        preset: str = "paper",
-        *,
-        seed: int = 0,
-        workdir: Path | None = None,
-        progress: bool = True,
-        device: str = "cpu",
-        compile: bool | None = None,
-        max_batch: int | None = None,
-        **options: Any,
-    ) -> GeneratedData:
-        """Run the lattice Boltzmann sphere for the preset's Reynolds numbers ("paper": 90 / 11; "small": 4 / 2).
-
-        Re comes from :func:`interleaved_sweep` over [59.5, 990.5] with ``np.random.default_rng(seed)``.
-        All runs of a split advance together as one batch on ``device`` ("cpu", "cuda", "cuda:1" ...),
-        split into batches that fit its memory (or at most ``max_batch``). ``compile`` (default: on for
-        CUDA, off on the CPU) wraps the step in torch.compile. Solver settings can be overridden by
-        keyword: resolution (nodes per R), u_lattice, spin_up (R/U), n_frames, frame_dt is fixed at
-        0.5 R/U, smagorinsky, perturbation, sponge (R), sponge_strength; see :mod:`dks_gym.solvers.sphere_case`.
-        ``time`` counts from the first frame (taken after ``spin_up``). Drag and lift coefficients at
-        every frame are kept in the file as extras ``drag``, ``lift`` (y, wall-normal) and ``lift_z``.
-        The runs happen when ``trajectories`` is iterated; ``workdir`` is unused (nothing is cached, so
-        an interrupted generation starts again).
-        """
-        check_preset(preset)
-        from ..solvers import sphere_case
-
-        allowed = set(sphere_case.SETTING_KEYS) - {"frame_dt", "walls", "half_width"}
-        unknown = set(options) - allowed
-        if unknown:
-            raise ValueError(
-                f"unknown option(s) for the sphere generator: {', '.join(sorted(unknown))}; it accepts preset, "
-                f"seed, workdir, progress, device, compile, max_batch and the solver settings {', '.join(sorted(allowed))}"
-            )
-        settings = {**sphere_case.DEFAULTS, **PRESET_SETTINGS[preset], **options, "frame_dt": self.dt}
-        n_train, n_test = PRESET_COUNTS[preset]
-        low, high = self.param_range
-        re_train, re_test = interleaved_sweep(low, high, n_train, n_test, np.random.default_rng(seed))
-        n_frames = int(settings["n_frames"])
-        if n_frames < 2:
-            raise ValueError(f"n_frames must be at least 2, got {n_frames}")
-        time = self.dt * np.arange(n_frames)
-        coords, cell_type = self.coords(), self.cell_type()
-        re_all = np.concatenate([re_train, re_test])
-        extras: dict[str, dict[str, np.ndarray]] = {
-            split: {k: np.zeros((n, n_frames)) for k in ("drag", "lift", "lift_z")}
-            for split, n in (("train", n_train), ("test", n_test))
-        }
-        info: dict[str, Any] = {}
-
-        def trajectories() -> Iterator[tuple[str, int, np.ndarray]]:
-            batches = sphere_case.run_batches(
-                re_all, settings, coords=coords, cell_type=cell_type, device=device, compile=compile,
-                max_batch=max_batch, progress=progress, info=info,
-            )
-            for part, res in batches:
-                for j, i in enumerate(range(part.start, part.stop)):
-                    split, index = ("train", i) if i < n_train else ("test", i - n_train)
-                    for key in ("drag", "lift", "lift_z"):
-                        extras[split][key][index] = res[key][j]
-                    yield split, index, res["fields"][j]
-
-        generator: dict[str, Any] = {
-            "name": __name__,
-            "version": GENERATOR_VERSION,
-            "preset": preset,
-            "seed": int(seed),
-            "solver": "batched lattice Boltzmann D3Q19, BGK + Smagorinsky, float32 (dks_gym.solvers.lbm)",
-            "boundaries": "x=-8R velocity inlet (NEE), y=+-4R no-slip walls (half-way bounce-back), z periodic, "
-            "pressure outlet (NEE) behind an absorbing layer in 16R < x < 16R + sponge; sphere by half-way bounce-back",
-            "settings": {k: settings[k] for k in sphere_case.SETTING_KEYS},
-            "device": str(device),
-            "lattice": sphere_case.describe(settings),
-            "units": "lengths R, velocity U, time R/U, p kinematic in U^2 relative to the outlet; Re = U 2R / nu",
-            "time": "time counts from the first frame, taken after spin_up R/U from an impulsive start",
-            "extras": "drag, lift (y), lift_z: force coefficients F / (0.5 U^2 pi R^2) at every frame",
-        }
-        return GeneratedData(
-            time=time,
-            params={"train": re_train, "test": re_test},
-            trajectories=trajectories(),
-            generator=generator,
-            coords=coords,
-            cell_type=cell_type,
-            extras=extras,
-        )
-
 
 SPHERE = SphereBenchmark(
     name="sphere",
@@ -260,4 +151,5 @@ SPHERE = SphereBenchmark(
     n_test=11,
     cell_type_codes=dict(CELL_TYPE_CODES),
     solid_codes=(CELL_TYPE_CODES["body"],),
+    generator_entry_point="dks_gym.solvers.sphere_case:generate_sphere",
 )

@@ -12,7 +12,9 @@ def register_envs() -> None:
     """Register the four environment ids with Gymnasium (idempotent)."""
     for name, bench in BENCHMARKS.items():
         if bench.env_id not in registry:
-            register(id=bench.env_id, entry_point="dks_gym.envs.sensing:SensingEnv", kwargs={"benchmark": name})
+            # Strings, so that registering imports neither torch nor the filter stack.
+            register(id=bench.env_id, entry_point="dks_gym.envs.sensing:SensingEnv", kwargs={"benchmark": name},
+                     vector_entry_point="dks_gym.wrappers.vector:LatentFilterVectorEnv")
 
 
 __all__ = ["SENSOR_MODES", "SensingEnv", "register_envs"]

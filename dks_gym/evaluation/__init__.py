@@ -1,12 +1,13 @@
 """Evaluation: the paper's Section IV experiments as code (batched assimilation runs, results files, figures).
 
-* :func:`run_assimilation`: forward run / EKF / EnKF of one model over a whole test split as one batch;
+* :func:`run_assimilation` (from :mod:`dks_gym.assimilation`): forward run / EKF / EnKF of one model over a
+  whole test split as one batch;
 * :mod:`~dks_gym.evaluation.results`: the versioned results JSON (``save_results``, ``load_results``, ``compare``);
 * :func:`reproduce`: ``dks-gym reproduce BENCHMARK`` (every experiment, tables and figures);
 * :func:`run_demo`: ``dks-gym demo``.
 """
 
-from .assimilation import AssimilationConfig, AssimilationResult, run_assimilation
+from ..assimilation import AssimilationConfig, AssimilationResult, run_assimilation
 from .demo import run_demo
 from .reproduce import EXPERIMENTS, reproduce
 from .results import compare, load_results, save_results, validate

@@ -55,11 +55,11 @@ def run_demo(
     import torch
     from tqdm.auto import tqdm
 
-    from .. import __version__
+    from ..version import __version__
     from ..dataset import DatasetMissing, generate_dataset, load_dataset
     from ..models import load_model
     from ..models.checkpoint import dataset_identity
-    from .assimilation import AssimilationConfig, run_assimilation
+    from ..assimilation import AssimilationConfig, run_assimilation
 
     start = time.perf_counter()
     out = Path(out)
@@ -79,7 +79,7 @@ def run_demo(
     bar = tqdm(jobs, desc="assimilating (model x filter)", unit="run", disable=not progress, dynamic_ncols=True)
     for kind, filt in bar:
         bar.set_postfix_str(f"{kind} {filt}", refresh=False)
-        result = run_assimilation(models[kind], ds, AssimilationConfig(filter=filt), progress=progress,
+        result = run_assimilation(models[kind], ds, AssimilationConfig().replace(kind=filt), progress=progress,
                                   description=f"{kind} {filt}")
         records.append(make_record(result, experiment="demo", keep_curves=False))
     bar.close()

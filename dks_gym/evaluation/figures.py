@@ -20,7 +20,9 @@ from typing import Any
 
 import numpy as np
 
-MODEL_ORDER = ("koopman", "pdmd", "mlp", "xlstm")
+from ..names import MODEL_KINDS
+
+MODEL_ORDER = MODEL_KINDS
 MODEL_LABELS = {"koopman": "Koopman", "pdmd": "pDMD", "mlp": "MLP", "xlstm": "xLSTM"}
 MODEL_COLORS = {"koopman": "#1f77b4", "pdmd": "#2ca02c", "mlp": "#ff7f0e", "xlstm": "#9467bd"}
 FILTER_LABELS = {"forward": "forward run", "ekf": "EKF", "enkf": "EnKF"}

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from .assimilation import AssimilationConfig, AssimilationResult, run_assimilation
+from ..assimilation import AssimilationConfig, AssimilationResult, run_assimilation
 from .figures import (
     MODEL_LABELS,
     MODEL_ORDER,
@@ -214,7 +214,7 @@ def reproduce(
     import torch
     from tqdm.auto import tqdm
 
-    from .. import __version__
+    from ..version import __version__
     from ..models import load_model
     from ..models.checkpoint import dataset_identity
 
@@ -235,9 +235,9 @@ def reproduce(
         pairs = [(name, run) for name, run in pairs if name not in done]
     experiments = list(dict.fromkeys(name for name, _ in pairs))
     start = time.perf_counter()
-    base = AssimilationConfig(noise_seed=noise_seed, filter_seed=filter_seed)
+    base = AssimilationConfig(noise_seed=noise_seed).replace(seed=filter_seed)
     config = {
-        "n_sensors": base.n_sensors, "P0": base.P0, "Q": base.Q, "noise_seed": noise_seed,
+        "n_sensors": base.n_sensors, "P0": base.filter.P0, "Q": base.filter.Q, "noise_seed": noise_seed,
         "filter_seed": filter_seed, "split": base.split, "n_test": ds.n_trajectories(base.split),
         "n_frames": ds.n_frames, "dt": ds.dt, "t0": float(ds.time[0]), "param_name": ds.param_name,
         "observed_channel": ds.observed_channel, "scored_channels": list(ds.scored_channels),
@@ -263,10 +263,8 @@ def reproduce(
         for run in runs:
             bar.set_postfix_str(f"{experiment}: {run.model} {run.filter} {run.initial}", refresh=False)
             if run.cache_key not in cache:
-                run_config = AssimilationConfig(
-                    filter=run.filter, initial=run.initial, noise_level=run.noise, n_members=run.n_members,
-                    noise_seed=noise_seed, filter_seed=filter_seed,
-                )
+                run_config = base.replace(kind=run.filter, initial=run.initial, noise_level=run.noise,
+                                          n_members=run.n_members)
                 cache[run.cache_key] = run_assimilation(
                     models[run.model_key], ds, run_config, trajectories=[0] if run.single else None,
                     progress=progress, description=f"{run.model} {run.filter}",

@@ -40,19 +40,19 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import uuid
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..atomic import atomic_path
+from ..names import FILTERS, MODEL_KINDS
+
 SCHEMA = "dks-gym-results"
 SCHEMA_VERSION = 1
 RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_members")
-FILTERS = ("forward", "ekf", "enkf")
-MODELS = ("koopman", "pdmd", "mlp", "xlstm")
+MODELS = MODEL_KINDS
 INITIALS = ("approximate", "exact")
 _REQUIRED_TOP = ("schema", "schema_version", "benchmark", "preset", "dataset", "config", "records")
 _REQUIRED_RECORD = RECORD_KEY + (
@@ -79,17 +79,17 @@ def _numbers(values: Any) -> Any:
 
 
 def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool = True) -> dict[str, Any]:
-    """A schema record from an :class:`~dks_gym.evaluation.assimilation.AssimilationResult`."""
+    """A schema record from an :class:`~dks_gym.assimilation.AssimilationResult`."""
     cfg = result.config
     record: dict[str, Any] = {
         "experiment": experiment,
         "model": result.model,
-        "filter": cfg.filter,
-        "initial": cfg.initial,
+        "filter": cfg.filter.kind,
+        "initial": cfg.filter.initial,
         "noise": float(cfg.noise_level),
         "r": int(result.r),
         "T": int(T),
-        "n_members": int(cfg.n_members) if cfg.filter == "enkf" else None,
+        "n_members": int(cfg.filter.n_members) if cfg.filter.kind == "enkf" else None,
         "batch": int(result.batch),
         "final_mse_mean": _number(result.final_mse_mean),
         "final_mse_std": _number(result.final_mse_std),
@@ -234,14 +234,9 @@ def save_results(doc: dict[str, Any], path: str | Path) -> Path:
     validate(doc)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-    try:
-        with open(tmp, "w") as f:
-            json.dump(doc, f, indent=1, allow_nan=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
+        json.dump(doc, f, indent=1, allow_nan=False)
+        f.write("\n")
     return path
 
 

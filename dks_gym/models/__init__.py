@@ -20,7 +20,8 @@ from .checkpoint import (
 )
 from .embedding import ParameterEmbedding
 from .koopman import KoopmanOperator, dissipative_generator
-from .latent_model import LatentModel, NeuralLatentModel, build_model, count_parameters
+from .build import NEURAL_MAPS, build_model
+from .latent_model import KoopmanModel, LatentModel, NeuralLatentModel, count_parameters, model_device
 from .mlp import MLPTransition
 from .pdmd import PDMD, streamed_pod
 from .presets import (
@@ -51,6 +52,7 @@ __all__ = [
     "BENCHMARK_SHAPES",
     "MODEL_KINDS",
     "MODEL_PRESETS",
+    "NEURAL_MAPS",
     "PAPER_LATENT_PARAM_COUNTS",
     "PAPER_PARAM_COUNTS",
     "PDMD",
@@ -60,6 +62,7 @@ __all__ = [
     "CheckpointMissing",
     "ConvDecoder",
     "ConvEncoder",
+    "KoopmanModel",
     "KoopmanOperator",
     "LatentModel",
     "MLPTransition",
@@ -78,6 +81,7 @@ __all__ = [
     "dataset_identity",
     "dissipative_generator",
     "load_model",
+    "model_device",
     "model_from_checkpoint",
     "one_step_error",
     "read_checkpoint",

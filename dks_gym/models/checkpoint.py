@@ -29,7 +29,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import uuid
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -38,8 +37,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..atomic import atomic_path
 from ..home import data_home, ensure_writable
-from .latent_model import LatentModel, build_model
+from .build import build_model
+from .latent_model import LatentModel
 from .presets import MODEL_KINDS, MODEL_PRESETS, benchmark_shape
 
 FORMAT = "dks-gym-checkpoint"
@@ -123,7 +124,7 @@ def _created(dataset: Any) -> str | None:
 # Metadata --------------------------------------------------------------------------------------------
 def build_metadata(model: LatentModel, *, preset: str, T: int, dataset: Any, **training: Any) -> dict[str, Any]:
     """Metadata of a checkpoint of ``model`` trained on ``dataset``; ``training`` adds steps, batch, lr, seed."""
-    from .. import __version__
+    from ..version import __version__
 
     meta: dict[str, Any] = {
         "format": FORMAT,
@@ -221,13 +222,9 @@ def save_checkpoint(
     for k, v in (training_tensors or {}).items():
         tensors[_TRAINING + k] = _plain(v)
     meta = dict(metadata, saved=datetime.now(timezone.utc).isoformat(timespec="seconds"))
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-    try:
+    with atomic_path(path) as tmp:  # an interrupted write never leaves a file that looks valid
         save_file(tensors, str(tmp), metadata={_METADATA_KEY: json.dumps(meta, sort_keys=True)})
         os.chmod(tmp, 0o644)  # safetensors creates 0600 files; checkpoints are as shareable as the datasets
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)  # an interrupted write never leaves a file that looks valid
     return path
 
 

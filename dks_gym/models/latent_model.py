@@ -1,4 +1,4 @@
-"""The uniform latent-model interface the filters use, the three neural models, and :func:`build_model`.
+"""The uniform latent-model interface the filters use, and the encoder-decoder models around a learned latent map.
 
 Every model is a ``torch.nn.Module`` with attributes ``benchmark``, ``kind`` ("koopman", "mlp", "xlstm",
 "pdmd"), ``r``, ``dt``, ``grid`` and the methods (all batched over a leading dimension B)::
@@ -9,6 +9,11 @@ Every model is a ``torch.nn.Module`` with attributes ``benchmark``, ``kind`` ("k
     forecast_jacobian(z, mu)                                    -> dF/dz (B, r, r)
     observe(z, mu, sensors, channel)                            -> S(decode(z)) (B, m)   (Eq. 12)
     rollout(z0, mu, n_steps)                                    -> (B, n_steps + 1, r)
+    filter_forecast_jacobian(mu)            dF/dz as the filters take it: a constant (B, r, r) or a callable
+    filter_observe_jacobian(rows, channel)  dh/dz as the filters take it: None (autodiff) or a callable
+
+A model owns its linearization: the Koopman model hands the filters K(mu) (cached per mu), pDMD A~(mu)
+and its exact observation matrix, the MLP and xLSTM maps an autodiff Jacobian.
 
 Fields enter and leave in physical units: each model holds the per-channel train-split mean and std as
 buffers and normalizes inside ``encode`` and de-normalizes inside ``decode``. Where the benchmark has a
@@ -21,7 +26,7 @@ and :meth:`NeuralLatentModel.reconstruction_target` keeps, so a training loss on
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Any, Sequence
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -29,26 +34,10 @@ from torch import nn
 
 from .backbones import ConvDecoder, ConvEncoder, ParametricEncoder
 from .embedding import ParameterEmbedding
-from .koopman import KoopmanOperator
-from .mlp import MLPTransition
-from .presets import (
-    EMBEDDING_HIDDEN_LAYERS,
-    KOOPMAN_HIDDEN_LAYERS,
-    MLP_HIDDEN_LAYERS,
-    MLP_HIDDEN_WIDTH,
-    MODEL_KINDS,
-    MODEL_PRESETS,
-    XLSTM_CONV_KERNEL,
-    XLSTM_EMBEDDING_DIM,
-    XLSTM_NUM_HEADS,
-    XLSTM_QKV_BLOCKSIZE,
-    BenchmarkShape,
-    backbone_spec,
-    benchmark_shape,
-)
-from .xlstm import XLSTMTransition
+from .presets import EMBEDDING_HIDDEN_LAYERS, BenchmarkShape, backbone_spec
 
 ArrayLike = Any  # torch.Tensor, np.ndarray, float or sequence of floats
+Map = Callable[[torch.Tensor], torch.Tensor]
 
 
 def count_parameters(module: nn.Module) -> int:
@@ -165,6 +154,24 @@ class LatentModel(nn.Module):
             states.append(self.forecast(states[-1], mu))
         return torch.stack(states, dim=1)
 
+    # How the filters linearize this model ---------------------------------------------------------
+    def filter_forecast_jacobian(self, mu: torch.Tensor) -> torch.Tensor | Map:
+        """dF/dz with ``mu`` (B,) bound, as :class:`~dks_gym.filters.LatentDynamics` takes it.
+
+        Default: a callable over ``k * B`` stacked rows (row j belongs to element j // k) that evaluates
+        :meth:`forecast_jacobian` at the filter's state. Linear maps return their constant (B, r, r) operator.
+        """
+        batch = mu.shape[0]
+        return lambda z: self.forecast_jacobian(z, mu.repeat_interleave(z.shape[0] // batch, dim=0))
+
+    def filter_observe_jacobian(self, sensor_rows: Callable[[int], np.ndarray], channel: str) -> Map | None:
+        """dh/dz of h(z) = S(decode(z)) for the filters: None means autodiff through the decoder.
+
+        ``sensor_rows(n)`` gives the (n, m) sensor indices of n stacked rows at the current step. Models
+        with a linear decoder return a callable giving the exact (n, m, r) Jacobian.
+        """
+        return None
+
     def observe(self, z: ArrayLike, mu: ArrayLike, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
         """h(z) = S(decode(z)): the decoded ``channel`` (index or name) at flat C-order grid ``sensors``, (B, m)."""
         idx = self._sensor_index(sensors)
@@ -195,17 +202,20 @@ class LatentModel(nn.Module):
 
 
 class NeuralLatentModel(LatentModel):
-    """Encoder E_phi + embedding e_omega, decoder G_psi and a learned latent map (Koopman, MLP or xLSTM).
+    """Encoder E_phi + embedding e_omega, decoder G_psi and a learned latent map F(z, s) (MLP or xLSTM).
 
-    Parameter counts (``param_counts``) follow the paper's table: the encoder includes the embedding,
-    the decoder has no parameter of its own for the conditioning (it receives z + s), and the latent map
-    excludes the embedding.
+    ``latent_map(r, dt)`` builds the map, a module with ``forward(z, s) -> z_next`` for (B, r) states and
+    embeddings; it is called after the encoder and decoder exist, so weights drawn from one seed do not
+    depend on the map. The forecast Jacobian is autodiff through the map. Parameter counts
+    (``param_counts``) follow the paper's table: the encoder includes the embedding, the decoder has no
+    parameter of its own for the conditioning (it receives z + s), and the latent map excludes the embedding.
     """
 
     def __init__(
         self,
         shape: BenchmarkShape,
         kind: str,
+        latent_map: Callable[[int, float], nn.Module],
         r: int = 32,
         preset: str = "paper",
         *,
@@ -215,22 +225,13 @@ class NeuralLatentModel(LatentModel):
         cell_type: ArrayLike | None = None,
     ) -> None:
         super().__init__(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std)
-        if kind not in ("koopman", "mlp", "xlstm"):
-            raise ValueError(f"NeuralLatentModel kind must be 'koopman', 'mlp' or 'xlstm', got {kind!r}")
         self.kind = kind
         self.preset = preset
         spec = backbone_spec(shape.name, preset)
         embedding = ParameterEmbedding(self.r, shape.param_range, EMBEDDING_HIDDEN_LAYERS)
         self.encoder = ParametricEncoder(ConvEncoder(shape, spec, self.r), embedding)
         self.decoder = ConvDecoder(shape, spec, self.r)
-        if kind == "koopman":
-            self.latent_map: nn.Module = KoopmanOperator(self.r, self.dt, KOOPMAN_HIDDEN_LAYERS)
-        elif kind == "mlp":
-            self.latent_map = MLPTransition(self.r, MLP_HIDDEN_WIDTH, MLP_HIDDEN_LAYERS)
-        else:
-            self.latent_map = XLSTMTransition(
-                self.r, XLSTM_EMBEDDING_DIM, XLSTM_NUM_HEADS, XLSTM_CONV_KERNEL, XLSTM_QKV_BLOCKSIZE
-            )
+        self.latent_map: nn.Module = latent_map(self.r, self.dt)
         if shape.has_cell_type:
             ct = None if cell_type is None else self._cell_type_tensor(cell_type)
             self.register_buffer("cell_type", ct)
@@ -238,7 +239,6 @@ class NeuralLatentModel(LatentModel):
             if cell_type is not None:
                 raise ValueError(f"{shape.name} has no cell type; do not pass cell_type")
             self.cell_type = None
-        self._operator_cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
 
     def _cell_type_tensor(self, cell_type: ArrayLike) -> torch.Tensor:
         ct = torch.as_tensor(np.asarray(cell_type), dtype=torch.float32)
@@ -303,18 +303,15 @@ class NeuralLatentModel(LatentModel):
         return self.denormalize(self.decode_normalized(z, mu)[:, : self.n_fields])
 
     def forecast(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """z_{k+1} = F(z_k, e(mu)) through the learned map (Eq. 5)."""
         z = self._latent(z)
         mu = self._param(mu, z.shape[0])
-        if self.kind == "koopman":
-            return (self.koopman_operator(mu).to(z.dtype) @ z[..., None])[..., 0]  # Eq. 7
         return self.latent_map(z.to(self._dtype), self.embed_param(mu)).to(z.dtype)
 
     def forecast_jacobian(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
-        """Koopman: K(mu; dt) (state independent); MLP/xLSTM: autodiff Jacobian at z (torch.func)."""
+        """Autodiff Jacobian of the map at z (torch.func), (B, r, r)."""
         z = self._latent(z)
         mu = self._param(mu, z.shape[0])
-        if self.kind == "koopman":
-            return self.koopman_operator(mu).to(z.dtype)
         s = self.embed_param(mu)
 
         def one_step(z1: torch.Tensor, s1: torch.Tensor) -> torch.Tensor:
@@ -322,11 +319,31 @@ class NeuralLatentModel(LatentModel):
 
         return torch.func.vmap(torch.func.jacrev(one_step))(z.to(self._dtype), s).to(z.dtype)
 
-    # Koopman operator -----------------------------------------------------------------------------
+
+class KoopmanModel(NeuralLatentModel):
+    """The deep Koopman model: a linear latent map z_{k+1} = K(mu; dt) z_k (Eqs. 7-9), K cached per mu."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._operator_cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+
+    def forecast(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        z = self._latent(z)
+        mu = self._param(mu, z.shape[0])
+        return (self.koopman_operator(mu).to(z.dtype) @ z[..., None])[..., 0]  # Eq. 7
+
+    def forecast_jacobian(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """K(mu; dt), whatever z (the map is linear)."""
+        z = self._latent(z)
+        return self.koopman_operator(self._param(mu, z.shape[0])).to(z.dtype)
+
+    def filter_forecast_jacobian(self, mu: torch.Tensor) -> torch.Tensor:
+        """K(mu) for the whole episode, computed once."""
+        with torch.no_grad():
+            return self.koopman_operator(mu).to(mu.dtype)
+
     def koopman_operator(self, mu: ArrayLike) -> torch.Tensor:
         """K(mu; dt) (B, r, r) (Eq. 7); cached per mu when no gradient is being recorded."""
-        if self.kind != "koopman":
-            raise TypeError(f"koopman_operator is defined for the Koopman model only, this model is {self.kind!r}")
         mu = torch.as_tensor(mu, device=self.stats_mean.device)
         mu = self._param(mu, mu.shape[0] if mu.ndim else 1)
         if torch.is_grad_enabled() and any(p.requires_grad for p in self._operator_parameters()):
@@ -351,54 +368,15 @@ class NeuralLatentModel(LatentModel):
         values, inverse = torch.unique(mu, return_inverse=True)
         return self.latent_map.operator(self.encoder.embedding(values))[inverse]
 
-    def _apply(self, fn: Any, *args: Any, **kwargs: Any) -> "NeuralLatentModel":
+    def _apply(self, fn: Any, *args: Any, **kwargs: Any) -> "KoopmanModel":
         self._operator_cache.clear()  # device or dtype moves invalidate cached operators
         return super()._apply(fn, *args, **kwargs)
 
 
-def build_model(
-    benchmark: Any,
-    model: str,
-    r: int = 32,
-    preset: str = "paper",
-    *,
-    dataset: Any = None,
-    dt: float | None = None,
-    stats_mean: ArrayLike | None = None,
-    stats_std: ArrayLike | None = None,
-    cell_type: ArrayLike | None = None,
-    seed: int | None = 0,
-) -> LatentModel:
-    """Build a latent model of ``benchmark`` (name or Benchmark): "koopman", "mlp", "xlstm" or "pdmd".
-
-    ``preset`` is "paper" (the paper's architectures, exact parameter counts at r = 32) or "lite"
-    (narrower, CPU-trainable). Pass ``dataset=ds`` to take the latent step, the train-split channel
-    statistics and the cell type from a :class:`dks_gym.dataset.Dataset`; otherwise the benchmark's
-    paper dt and an identity normalization are used (fine for counting parameters and for tests).
-    Weights are initialized from ``seed`` without touching the global RNG. A pDMD model is returned
-    unfitted: call ``.fit(...)`` or ``.fit_dataset(ds)``.
-    """
-    shape = benchmark_shape(benchmark)
-    if model not in MODEL_KINDS:
-        raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODEL_KINDS)}")
-    if preset not in MODEL_PRESETS:
-        raise ValueError(f"unknown model preset {preset!r}; choose one of {', '.join(MODEL_PRESETS)}")
-    if dataset is not None:
-        ds_name = getattr(dataset.benchmark, "name", dataset.benchmark)
-        if str(ds_name).lower() != shape.name:
-            raise ValueError(f"dataset is for benchmark {ds_name!r}, not {shape.name!r}")
-        dt = dataset.dt if dt is None else dt
-        stats_mean = dataset.stats_mean if stats_mean is None else stats_mean
-        stats_std = dataset.stats_std if stats_std is None else stats_std
-        cell_type = dataset.cell_type if cell_type is None else cell_type
-    if model == "pdmd":
-        from .pdmd import PDMD
-
-        return PDMD(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std)
-    devices: Sequence[Any] = []
-    with torch.random.fork_rng(devices=devices):
-        if seed is not None:
-            torch.manual_seed(seed)
-        return NeuralLatentModel(
-            shape, model, r, preset, dt=dt, stats_mean=stats_mean, stats_std=stats_std, cell_type=cell_type
-        )
+def model_device(model: Any) -> torch.device:
+    """The device a model's buffers live on (CPU for a model without tensors)."""
+    buffer = getattr(model, "stats_mean", None)
+    if isinstance(buffer, torch.Tensor):
+        return buffer.device
+    first = next(iter(model.parameters()), None) if hasattr(model, "parameters") else None
+    return first.device if first is not None else torch.device("cpu")

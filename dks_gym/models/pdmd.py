@@ -278,6 +278,19 @@ class PDMD(LatentModel):
         z = self._latent(z)
         return self.online_operator(self._param(mu, z.shape[0])).to(z.dtype)
 
+    def filter_forecast_jacobian(self, mu: torch.Tensor) -> torch.Tensor:
+        """A~(mu) for the whole episode (the map is linear), computed once."""
+        with torch.no_grad():
+            return self.online_operator(mu).to(mu)
+
+    def filter_observe_jacobian(self, sensor_rows: Callable[[int], np.ndarray], channel: str) -> Callable:
+        """h is affine, so its Jacobian S diag(std) U_r at the current sensors is exact, (n, m, r)."""
+
+        def jacobian(z: torch.Tensor) -> torch.Tensor:
+            return torch.stack([self.observation_matrix(s, channel) for s in sensor_rows(z.shape[0])]).to(z)
+
+        return jacobian
+
     def observation_matrix(self, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
         """J = S diag(std) U_r restricted to ``channel`` at ``sensors``, (m, r): h(z) = J z + mean[channel]."""
         self._require_fitted()

@@ -18,9 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..benchmarks import BENCHMARKS, Benchmark
+from ..names import MODEL_KINDS
 
 MODEL_PRESETS = ("paper", "lite")
-MODEL_KINDS = ("koopman", "mlp", "xlstm", "pdmd")
 
 
 @dataclass(frozen=True)

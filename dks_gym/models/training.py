@@ -53,7 +53,8 @@ from .checkpoint import (
     save_checkpoint,
     train_command,
 )
-from .latent_model import LatentModel, NeuralLatentModel, build_model
+from .build import build_model
+from .latent_model import LatentModel, NeuralLatentModel
 from .presets import benchmark_shape
 
 LEARNING_RATE = 1e-4  # Adam, all models and benchmarks (the paper's training tables)

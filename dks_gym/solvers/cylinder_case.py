@@ -1,18 +1,19 @@
-"""The cylinder benchmark's OpenFOAM case (pimpleFoam) and its generator.
+"""The cylinder benchmark's OpenFOAM case (pimpleFoam) and its generator, :data:`generate_cylinder`.
 
 Geometry (:mod:`dks_gym.benchmarks.cylinder`, paper Section III.B): x in [-8R, 16R], y in [-4R, 4R],
 a cylinder of radius R = 1 at the origin; uniform inflow U = 1 at x = -8, p = 0 at the outlet x = 16,
 no-slip walls at y = +-4 and on the cylinder. Re = U D / nu with D = 2R, so nu = 2 / Re. Lengths are in
 R and times in R/U; u, v are in U and p is the kinematic pressure in U^2.
 
-Mesh (written here by :func:`block_mesh_dict`): an O-grid of four blocks between the cylinder and the
+Mesh (written here by :func:`block_mesh_dict`; the other case files are the templates in
+``templates/cylinder``): an O-grid of four blocks between the cylinder and the
 square [-2, 2]^2, surrounded by eight rectilinear blocks. ``n_quarter`` cells span each quarter of the
 circle and each side of the square (spacing h = 4 / n_quarter around and behind the body); radial
 cells grow geometrically from ``wall_cell`` at the surface to about h at the square; upstream and
 downstream the cells grow from h to ``3 h`` at the inlet and ``outlet_growth`` h at the outlet, and the
 side blocks towards the walls are uniform with spacing h. ``refine`` multiplies every cell count
 (and divides ``wall_cell``); the paper preset uses refine 1.15 (7,224 cells), which passes the mesh
-study (``benchmarks/cylinder_mesh_study.py``: St and mean drag within 3 % of refine 2.3 at Re 200 and 990;
+study (``validation/cylinder_mesh_study.py``: St and mean drag within 3 % of refine 2.3 at Re 200 and 990;
 refine 1 missed it at Re 990) and keeps the 101-run sweep within 45 minutes on 2 cores.
 
 Run: the flow starts impulsively from U = (1, 0) everywhere plus a transverse kick
@@ -26,28 +27,29 @@ growth is slow and the cap decides. It then records ``n_frames`` frames every ``
 first frame and the end of the spin-up is kept per run (``t_start``). The lift and drag coefficients
 (forceCoeffs, reference length D and area D x depth, so C = F / (1/2 rho U^2 D) per unit depth) are
 kept over the recording window, sampled every ``force_dt``.
+
+:data:`generate_cylinder` (an :class:`~dks_gym.solvers.openfoam.SweepGenerator`) is the benchmark's
+generator: ``CYLINDER.generate("paper")`` runs the 90 + 11 runs ("small": 3 + 2) and returns the lift
+and drag series and the spin-up length as extras (``{split: {"lift", "drag": (n_traj, n_samples),
+"t_start": (n_traj,)}}``, forces sampled every ``force_dt`` from the first frame).
 """
 
 from __future__ import annotations
 
 import math
-import shutil
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..benchmarks.base import Benchmark, GeneratedData, check_preset
+from ..benchmarks.cylinder import EXTENT, RADIUS
 from . import openfoam as of
 
 GENERATOR_VERSION = "1"
 
-RADIUS = 1.0
 DIAMETER = 2.0 * RADIUS
 U_INF = 1.0
-EXTENT = ((-8.0, 16.0), (-4.0, 4.0))
 SQUARE = 2.0  # half side of the square around the O-grid
 DEPTH = 1.0
 INLET_GROWTH = 3.0  # largest / smallest cell upstream
@@ -78,12 +80,6 @@ PRESETS: dict[str, dict[str, Any]] = {
         "frame_dt": 0.5, "n_frames": 20, "force_dt": 0.1, "max_co": 0.9, "kick": 0.5, "non_orth_correctors": 0,
     },
 }  # fmt: skip
-
-
-def _benchmark() -> Benchmark:
-    from ..benchmarks.cylinder import CYLINDER
-
-    return CYLINDER
 
 
 def _graded(length: float, smallest: float, ratio: float) -> int:
@@ -184,82 +180,31 @@ def block_mesh_dict(settings: Mapping[str, Any]) -> str:
     def quad(a: int, b: int) -> str:
         return f"            ({a} {b} {b + n2} {a + n2})"
 
-    faces = {
-        "inlet": [quad(g(0, j + 1), g(0, j)) for j in range(3)],
-        "outlet": [quad(g(3, j), g(3, j + 1)) for j in range(3)],
-        "walls": [quad(g(i, 0), g(i + 1, 0)) for i in range(3)] + [quad(g(i + 1, 3), g(i, 3)) for i in range(3)],
-        "cylinder": [quad(circle[(k + 1) % 4], circle[k]) for k in range(4)],
+    walls = [quad(g(i, 0), g(i + 1, 0)) for i in range(3)] + [quad(g(i + 1, 3), g(i, 3)) for i in range(3)]
+    patches = {  # in the order of PATCHES
+        "inlet": ("patch", [quad(g(0, j + 1), g(0, j)) for j in range(3)]),
+        "outlet": ("patch", [quad(g(3, j), g(3, j + 1)) for j in range(3)]),
+        "walls": ("wall", walls),
+        "cylinder": ("wall", [quad(circle[(k + 1) % 4], circle[k]) for k in range(4)]),
     }
-    kinds = {"inlet": "patch", "outlet": "patch", "walls": "wall", "cylinder": "wall"}
-    boundary = "\n".join(
-        f"    {p}\n    {{\n        type {kinds[p]};\n        faces\n        (\n"
-        + "\n".join(faces[p])
-        + "\n        );\n    }"
-        for p in PATCHES
+    return of.block_mesh_dict(vertices, blocks, edges, patches)
+
+
+def control_dict(settings: Mapping[str, Any], start: str, end: float, interval: float) -> str:
+    """``system/controlDict`` of a pimpleFoam run from ``start`` ("startTime" or "latestTime") to ``end``,
+    writing every ``interval`` R/U, with the force coefficients on the cylinder every time step."""
+    return of.render(
+        "cylinder/system/controlDict",
+        start=start,
+        end=f"{end:.10g}",
+        delta_t=f"{0.2 * float(settings['wall_cell']) / float(settings.get('refine', 1.0)):.6g}",
+        interval=f"{interval:.10g}",
+        max_co=f"{float(settings['max_co']):.6g}",
+        max_delta_t=f"{float(settings['frame_dt']):.10g}",
+        u_inf=f"{U_INF:g}",
+        l_ref=f"{DIAMETER:g}",
+        a_ref=f"{DIAMETER * DEPTH:g}",
     )
-    body = (
-        "convertToMeters 1;\n\nvertices\n(\n" + "\n".join(vertices) + "\n);\n\nblocks\n(\n" + "\n".join(blocks)
-        + "\n);\n\nedges\n(\n" + "\n".join(edges) + "\n);\n\ndefaultPatch\n{\n    name frontAndBack;\n    type empty;\n}\n\n"
-        + "boundary\n(\n" + boundary + "\n);\n\nmergePatchPairs\n(\n);"
-    )  # fmt: skip
-    return of.foam_file("system/blockMeshDict", body)
-
-
-def _control_dict(settings: Mapping[str, Any], start: str, end: float, interval: float) -> str:
-    return of.foam_file(
-        "system/controlDict",
-        f"""
-application     pimpleFoam;
-startFrom       {start};
-startTime       0;
-stopAt          endTime;
-endTime         {end:.10g};
-deltaT          {0.2 * float(settings["wall_cell"]) / float(settings.get("refine", 1.0)):.6g};
-writeControl    adjustableRunTime;
-writeInterval   {interval:.10g};
-purgeWrite      0;
-writeFormat     binary;
-writePrecision  10;
-writeCompression off;
-timeFormat      general;
-timePrecision   10;
-runTimeModifiable false;
-adjustTimeStep  yes;
-maxCo           {float(settings["max_co"]):.6g};
-maxDeltaT       {float(settings["frame_dt"]):.10g};
-
-functions
-{{
-    forceCoeffs
-    {{
-        type            forceCoeffs;
-        libs            ("libforces.so");
-        writeControl    timeStep;
-        writeInterval   1;
-        log             false;
-        patches         (cylinder);
-        rho             rhoInf;
-        rhoInf          1;
-        CofR            (0 0 0);
-        liftDir         (0 1 0);
-        dragDir         (1 0 0);
-        pitchAxis       (0 0 1);
-        magUInf         {U_INF:g};
-        lRef            {DIAMETER:g};
-        Aref            {DIAMETER * DEPTH:g};
-    }}
-}}
-""",
-    )
-
-
-def _field(path: str, cls: str, dims: str, internal: str, patches: Mapping[str, str]) -> str:
-    entries = "\n".join(f"    {name}\n    {{\n        {spec}\n    }}" for name, spec in patches.items())
-    body = (
-        f"dimensions      {dims};\n\ninternalField   {internal};\n\nboundaryField\n{{\n{entries}\n"
-        "    frontAndBack\n    {\n        type empty;\n    }\n}"
-    )
-    return of.foam_file(path, body, cls=cls)
 
 
 def initial_velocity(cell_centres: np.ndarray, amplitude: float) -> np.ndarray:
@@ -269,7 +214,9 @@ def initial_velocity(cell_centres: np.ndarray, amplitude: float) -> np.ndarray:
     return np.stack([np.full_like(x, U_INF), v, np.zeros_like(x)], axis=1)
 
 
-def case_files(reynolds: float, settings: Mapping[str, Any], cell_centres: np.ndarray | None) -> dict[str, str]:
+def case_files(
+    reynolds: float, settings: Mapping[str, Any], cell_centres: np.ndarray | None = None
+) -> dict[str, str]:
     """Every file of a pimpleFoam cylinder case at Reynolds number ``reynolds`` = U D / nu.
 
     With ``cell_centres`` None the initial velocity is uniform (enough for meshing only).
@@ -287,76 +234,18 @@ def case_files(reynolds: float, settings: Mapping[str, Any], cell_centres: np.nd
             + "\n".join(f"({a:.10g} {b:.10g} {c:.10g})" for a, b, c in u0)
             + "\n)"
         )
-    no_slip = "type noSlip;"
+    spin_up = float(settings["spin_up"])
     return {
         "system/blockMeshDict": block_mesh_dict(settings),
-        "system/controlDict": _control_dict(
-            settings, "startTime", float(settings["spin_up"]), float(settings["spin_up"])
+        "system/controlDict": control_dict(settings, "startTime", spin_up, spin_up),
+        "system/fvSchemes": of.render("cylinder/system/fvSchemes"),
+        "system/fvSolution": of.render(
+            "cylinder/system/fvSolution", non_orth_correctors=str(int(settings["non_orth_correctors"]))
         ),
-        "system/fvSchemes": of.foam_file(
-            "system/fvSchemes",
-            """
-ddtSchemes { default backward; }
-gradSchemes { default Gauss linear; grad(U) cellLimited Gauss linear 1; }
-divSchemes
-{
-    default         none;
-    div(phi,U)      Gauss linearUpwind grad(U);
-    div((nuEff*dev2(T(grad(U))))) Gauss linear;
-}
-laplacianSchemes { default Gauss linear limited corrected 0.5; }
-interpolationSchemes { default linear; }
-snGradSchemes { default limited corrected 0.5; }
-""",
-        ),
-        "system/fvSolution": of.foam_file(
-            "system/fvSolution",
-            """
-solvers
-{
-    p { solver GAMG; smoother GaussSeidel; tolerance 1e-6; relTol 0.05; }
-    pFinal { solver GAMG; smoother GaussSeidel; tolerance 1e-6; relTol 0; }
-    "(U|UFinal)" { solver smoothSolver; smoother symGaussSeidel; tolerance 1e-7; relTol 0; }
-}
-PIMPLE
-{
-    momentumPredictor yes;
-    nOuterCorrectors 1;
-    nCorrectors     2;
-    nNonOrthogonalCorrectors NON_ORTH;
-    pRefCell        0;
-    pRefValue       0;
-}
-""".replace("NON_ORTH", str(int(settings["non_orth_correctors"]))),
-        ),
-        "constant/turbulenceProperties": of.foam_file("constant/turbulenceProperties", "simulationType laminar;"),
-        "constant/transportProperties": of.foam_file(
-            "constant/transportProperties", f"transportModel Newtonian;\nnu {nu:.17g};"
-        ),
-        "0/U": _field(
-            "0/U",
-            "volVectorField",
-            "[0 1 -1 0 0 0 0]",
-            internal_u,
-            {
-                "inlet": f"type fixedValue;\n        value uniform ({U_INF:g} 0 0);",
-                "outlet": "type inletOutlet;\n        inletValue uniform (0 0 0);\n        value uniform (0 0 0);",
-                "walls": no_slip,
-                "cylinder": no_slip,
-            },
-        ),
-        "0/p": _field(
-            "0/p",
-            "volScalarField",
-            "[0 2 -2 0 0 0 0]",
-            "uniform 0",
-            {
-                "inlet": "type zeroGradient;",
-                "outlet": "type fixedValue;\n        value uniform 0;",
-                "walls": "type zeroGradient;",
-                "cylinder": "type zeroGradient;",
-            },
-        ),
+        "constant/turbulenceProperties": of.render("shared/constant/turbulenceProperties"),
+        "constant/transportProperties": of.render("cylinder/constant/transportProperties", nu=f"{nu:.17g}"),
+        "0/U": of.render("cylinder/0/U", internal=internal_u, u_inf=f"{U_INF:g}"),
+        "0/p": of.render("cylinder/0/p"),
     }
 
 
@@ -420,11 +309,11 @@ def simulate(
             break
         k += 1
         t0 = min(t0 + step, t_max)
-        of.write_case(case_dir, {"system/controlDict": _control_dict(settings, "latestTime", t0, step)})
+        of.write_case(case_dir, {"system/controlDict": control_dict(settings, "latestTime", t0, step)})
         of.run_tool(case_dir, "pimpleFoam", log_name=f"pimpleFoam.spin_up{k}")
     frame_dt, n_frames = float(settings["frame_dt"]), int(settings["n_frames"])
     times = t0 + frame_dt * np.arange(n_frames)
-    of.write_case(case_dir, {"system/controlDict": _control_dict(settings, "latestTime", times[-1], frame_dt)})
+    of.write_case(case_dir, {"system/controlDict": control_dict(settings, "latestTime", times[-1], frame_dt)})
     log = of.run_tool(case_dir, "pimpleFoam", log_name="pimpleFoam.record")
     cells = of.read_frames(case_dir, of.select_times(case_dir, times), CHANNEL_FIELDS)
     if cells.shape[-1] != mesh.n_cells:
@@ -460,71 +349,10 @@ def strouhal(lift: np.ndarray, dt: float) -> float:
     return float(DIAMETER / (U_INF * period))
 
 
-def preset_settings(preset: str) -> dict[str, Any]:
-    """The solver settings of ``preset`` ("paper" or "small"), a copy."""
-    return dict(PRESETS[check_preset(preset)])
-
-
-def build_resampler(settings: Mapping[str, Any], workdir: Path, benchmark: Benchmark | None = None) -> of.Resampler:
-    """Mesh the case once (in ``workdir/mesh``) and compute the interpolation weights to the benchmark grid."""
-    bench = benchmark or _benchmark()
-    mesh_dir = Path(workdir) / "mesh"
-    shutil.rmtree(mesh_dir, ignore_errors=True)
-    mesh_dir.mkdir(parents=True)
-    of.write_case(mesh_dir, case_files(100.0, settings, None))
-    of.run_tool(mesh_dir, "blockMesh")
-    mesh = of.read_mesh(mesh_dir)
-    solid = np.isin(bench.cell_type(), bench.solid_codes)
-    return of.build_resampler(mesh, bench.coords(), solid, bench.channels, BOUNDARY_VALUES)
-
-
-def generate_cylinder(
-    preset: str = "paper",
-    seed: int = 0,
-    workdir: Path | None = None,
-    progress: bool = True,
-    *,
-    workers: int = 1,
-    executor: Any = None,
-    benchmark: Benchmark | None = None,
-    settings: Mapping[str, Any] | None = None,
-    keep_cases: bool = False,
-) -> GeneratedData:
-    """Run the cylinder sweep for ``preset`` with pimpleFoam and return it for the dataset layer.
-
-    Re comes from :func:`interleaved_sweep` over the benchmark range with ``default_rng(seed)``. Runs
-    are cached under ``workdir`` (a temporary directory if None), so an interrupted generation
-    resumes; ``workers`` / ``executor`` as in :func:`~dks_gym.solvers.openfoam.run_all`. ``settings``
-    overrides the preset's solver settings (mesh studies); ``keep_cases`` keeps every OpenFOAM case
-    directory. The lift and drag series and the spin-up length are returned in ``extras``
-    (``{split: {"lift", "drag": (n_traj, n_samples), "t_start": (n_traj,)}}``, forces sampled every
-    ``force_dt`` from the first frame).
-    """
-    of.check_openfoam(("blockMesh", "pimpleFoam", "postProcess"))
-    bench = benchmark or _benchmark()
-    conf = of.merge_settings("cylinder", preset_settings(preset), settings)
-    check_settings(conf)
-    train, test, runs = of.sweep_runs(bench, conf, seed)
-    temporary = workdir is None
-    workdir = Path(tempfile.mkdtemp(prefix="dks-cylinder-")) if temporary else Path(workdir)
-    resampler = build_resampler(conf, workdir, bench)
-    paths = of.run_all(
-        simulate, runs, name="cylinder", settings=conf, resampler=resampler, workdir=workdir,
-        workers=workers, executor=executor, progress=progress, keep_cases=keep_cases,
-    )  # fmt: skip
-    extras = of.collect_extras(paths, runs, ("lift", "drag", "t_start"))
-    first = of.load_run(paths[(runs[0].split, runs[0].index)])
-    time = float(conf["frame_dt"]) * np.arange(int(conf["n_frames"]))
-    generator = {
-        "name": __name__,
-        "version": GENERATOR_VERSION,
-        "preset": preset,
-        "seed": int(seed),
-        "solver": "OpenFOAM pimpleFoam (laminar, PISO, backward Euler, linearUpwind)",
-        "openfoam_build": str(first["build"]),
-        "settings": conf,
-        "mesh_cells": resampler.n_cells,
-        "mesh": {k: v for k, v in mesh_counts(conf).items()},
+def _describe(conf: Mapping[str, Any]) -> dict[str, Any]:
+    """The cylinder's own entries of the file's generator metadata."""
+    return {
+        "mesh": mesh_counts(conf),
         "units": "lengths in R, times in R/U, velocity in U, p kinematic in U^2",
         "time_origin": "time counts from the first recorded frame; extras/t_start is when that was after the impulsive start",
         "initial_kick": {**KICK, "amplitude": float(conf["kick"])},
@@ -534,13 +362,24 @@ def generate_cylinder(
                    "t_start": "R/U from the impulsive start to the first frame (end of the spin-up)"},
         "force_dt": float(conf["force_dt"]),
     }  # fmt: skip
-    return of.generated_data(
-        bench,
-        time,
-        {"train": train, "test": test},
-        paths,
-        runs,
-        generator,
-        extras,
-        cleanup=workdir if temporary else None,
-    )
+
+
+#: The cylinder benchmark's generator: ``generate_cylinder(CYLINDER, preset, seed=..., workdir=..., ...)``.
+generate_cylinder = of.SweepGenerator(
+    name="cylinder",
+    module=__name__,
+    version=GENERATOR_VERSION,
+    solver="OpenFOAM pimpleFoam (laminar, PISO, backward Euler, linearUpwind)",
+    tools=("blockMesh", "pimpleFoam", "postProcess"),
+    presets=PRESETS,
+    check_settings=check_settings,
+    case_files=case_files,
+    mesh_param=100.0,
+    boundary_values=BOUNDARY_VALUES,
+    simulate=simulate,
+    extras=("lift", "drag", "t_start"),
+    first_frame=0,
+    describe=_describe,
+)
+preset_settings = generate_cylinder.preset_settings
+build_resampler = generate_cylinder.build_resampler

@@ -1,4 +1,4 @@
-"""The dambreak benchmark's OpenFOAM case (interFoam) and its generator.
+"""The dambreak benchmark's OpenFOAM case (interFoam) and its generator, :data:`generate_dambreak`.
 
 Geometry (the canonical damBreak, :mod:`dks_gym.benchmarks.dambreak`): a 0.584 m square box open at
 the top, an obstacle 0.024 m wide and 0.048 m high on the floor at x = 0.292 m, and a water column
@@ -6,7 +6,8 @@ the top, an obstacle 0.024 m wide and 0.048 m high on the floor at x = 0.292 m, 
 rho = 1 kg/m^3; water: rho = 1000 kg/m^3 and the swept viscosity nu_w; surface tension 0.07 N/m,
 g = 9.81 m/s^2 downwards.
 
-The case is written here from that geometry: a rectilinear block mesh whose block edges lie on the
+The case is written here from that geometry (the other case files are the templates in
+``templates/dambreak``): a rectilinear block mesh whose block edges lie on the
 obstacle and on the water column's edges, so ``setFields`` fills the column exactly (initial water
 volume = 0.1461 x 0.292 x depth); cells are about ``cell_size`` wide and half that across the
 obstacle and in the floor layer y < 0.048 m, where the surge front travels (``cell_size`` = 0.0127 m is
@@ -15,13 +16,15 @@ lands exactly on the output times 0.01, 0.02, ... s; binary output is read back 
 resampled on the benchmark's 64 x 64 grid (:class:`~dks_gym.solvers.openfoam.Resampler`; obstacle
 cells are 0 in every channel). Each run also records, on the solver's own mesh, the water volume
 (integral of alpha.water) and the surge-front position along the floor at every frame, for the
-validations in ``benchmarks/dambreak_validation.py``.
+validations in ``validation/dambreak_validation.py``.
+
+:data:`generate_dambreak` (an :class:`~dks_gym.solvers.openfoam.SweepGenerator`) is the benchmark's
+generator: ``DAMBREAK.generate("paper")`` runs the 90 + 11 runs ("small": 3 + 2) and returns the water
+volume, outflow and surge front of every run as extras.
 """
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from collections.abc import Mapping
 from itertools import pairwise
 from pathlib import Path
@@ -29,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..benchmarks.base import Benchmark, GeneratedData, check_preset
+from ..benchmarks.dambreak import BOX, OBSTACLE_HEIGHT, OBSTACLE_X
 from . import openfoam as of
 
 GENERATOR_VERSION = "1"
@@ -55,16 +58,8 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-def _benchmark() -> Benchmark:
-    from ..benchmarks.dambreak import DAMBREAK
-
-    return DAMBREAK
-
-
 def _geometry() -> tuple[list[float], list[float], tuple[int, int]]:
     """Block edges in x and y and the (i, j) index of the missing block (the obstacle)."""
-    from ..benchmarks.dambreak import BOX, OBSTACLE_HEIGHT, OBSTACLE_X
-
     xs = [0.0, WATER_COLUMN[0], OBSTACLE_X[0], OBSTACLE_X[1], BOX[0]]
     ys = [0.0, OBSTACLE_HEIGHT, WATER_COLUMN[1], BOX[1]]
     return xs, ys, (2, 0)
@@ -117,31 +112,15 @@ def block_mesh_dict(cell_size: float) -> str:
                 else:
                     patch = "leftWall" if neighbour[0] < 0 else "rightWall"
                 faces[patch].append("            (" + " ".join(map(str, face)) + ")")
-    boundary = []
-    for patch in PATCHES:
-        kind = "patch" if patch == "atmosphere" else "wall"
-        boundary.append(
-            f"    {patch}\n    {{\n        type {kind};\n        faces\n        (\n"
-            + "\n".join(faces[patch])
-            + "\n        );\n    }"
-        )
-    boundary.append("    frontAndBack\n    {\n        type empty;\n        faces ();\n    }")
-    body = (
-        "convertToMeters 1;\n\nvertices\n(\n"
-        + "\n".join(vertices)
-        + "\n);\n\nblocks\n(\n"
-        + "\n".join(blocks)
-        + "\n);\n\nedges\n(\n);\n\ndefaultPatch\n{\n    name frontAndBack;\n    type empty;\n}\n\nboundary\n(\n"
-        + "\n".join(boundary[:-1])
-        + "\n);\n\nmergePatchPairs\n(\n);"
-    )
-    return of.foam_file("system/blockMeshDict", body)
+    patches = {patch: ("patch" if patch == "atmosphere" else "wall", faces[patch]) for patch in PATCHES}
+    return of.block_mesh_dict(vertices, blocks, [], patches)
 
 
-def _field(path: str, cls: str, dims: str, internal: str, patches: Mapping[str, str]) -> str:
-    entries = "\n".join(f"    {name}\n    {{\n        {spec}\n    }}" for name, spec in patches.items())
-    body = f"dimensions      {dims};\n\ninternalField   {internal};\n\nboundaryField\n{{\n{entries}\n    frontAndBack\n    {{\n        type empty;\n    }}\n}}"
-    return of.foam_file(path, body, cls=cls)
+def check_settings(settings: Mapping[str, Any]) -> None:
+    """Raise a ValueError naming the setting that cannot give a valid run."""
+    if not (float(settings["frame_dt"]) > 0 and int(settings["n_frames"]) >= 1 and 0 < float(settings["max_co"]) <= 5):
+        raise ValueError(f"need frame_dt > 0, n_frames >= 1 and 0 < max_co <= 5, got {settings}")
+    cell_counts(float(settings["cell_size"]))
 
 
 def case_files(nu_water: float, settings: Mapping[str, Any]) -> dict[str, str]:
@@ -150,168 +129,37 @@ def case_files(nu_water: float, settings: Mapping[str, Any]) -> dict[str, str]:
     if not (np.isfinite(nu_water) and nu_water > 0):
         raise ValueError(f"the water viscosity nu_w must be finite and > 0 m^2/s, got {nu_water}")
     frame_dt, n_frames = float(settings["frame_dt"]), int(settings["n_frames"])
-    end_time = frame_dt * n_frames
-    wall_u = "type noSlip;"
-    files = {
+    max_co = f"{float(settings['max_co']):.6g}"
+    return {
         "system/blockMeshDict": block_mesh_dict(float(settings["cell_size"])),
-        "system/controlDict": of.foam_file(
-            "system/controlDict",
-            f"""
-application     interFoam;
-startFrom       startTime;
-startTime       0;
-stopAt          endTime;
-endTime         {end_time:.10g};
-deltaT          1e-4;
-writeControl    adjustableRunTime;
-writeInterval   {frame_dt:.10g};
-purgeWrite      0;
-writeFormat     binary;
-writePrecision  10;
-writeCompression off;
-timeFormat      general;
-timePrecision   8;
-runTimeModifiable false;
-adjustTimeStep  yes;
-maxCo           {float(settings["max_co"]):.6g};
-maxAlphaCo      {float(settings["max_co"]):.6g};
-maxDeltaT       {frame_dt:.10g};
-
-functions
-{{
-    // Water leaving through the open top, every time step: the conservation check accounts for it.
-    atmosphereOutflow
-    {{
-        type            surfaceFieldValue;
-        libs            ("libfieldFunctionObjects.so");
-        writeControl    timeStep;
-        writeInterval   1;
-        log             false;
-        writeFields     false;
-        regionType      patch;
-        name            atmosphere;
-        operation       sum;
-        fields          (alphaPhi0.water);
-    }}
-}}
-""",
+        "system/controlDict": of.render(
+            "dambreak/system/controlDict",
+            end=f"{frame_dt * n_frames:.10g}",
+            interval=f"{frame_dt:.10g}",
+            max_co=max_co,
+            max_delta_t=f"{frame_dt:.10g}",
         ),
-        "system/fvSchemes": of.foam_file(
-            "system/fvSchemes",
-            """
-ddtSchemes { default Euler; }
-gradSchemes { default Gauss linear; }
-divSchemes
-{
-    div(rhoPhi,U)   Gauss linearUpwind grad(U);
-    div(phi,alpha)  Gauss vanLeer;
-    div(phirb,alpha) Gauss linear;
-    div(((rho*nuEff)*dev2(T(grad(U))))) Gauss linear;
-}
-laplacianSchemes { default Gauss linear corrected; }
-interpolationSchemes { default linear; }
-snGradSchemes { default corrected; }
-""",
+        "system/fvSchemes": of.render("dambreak/system/fvSchemes"),
+        "system/fvSolution": of.render("dambreak/system/fvSolution"),
+        "system/setFieldsDict": of.render(
+            "dambreak/system/setFieldsDict",
+            column_width=f"{WATER_COLUMN[0]:.6g}",
+            column_height=f"{WATER_COLUMN[1]:.6g}",
         ),
-        "system/fvSolution": of.foam_file(
-            "system/fvSolution",
-            """
-solvers
-{
-    "alpha.water.*"
-    {
-        nAlphaCorr      2;
-        nAlphaSubCycles 1;
-        cAlpha          1;
-        MULESCorr       yes;
-        nLimiterIter    5;
-        solver          smoothSolver;
-        smoother        symGaussSeidel;
-        tolerance       1e-8;
-        relTol          0;
+        "constant/g": of.render("dambreak/constant/g", g_y=f"{-GRAVITY:.6g}"),
+        "constant/turbulenceProperties": of.render("shared/constant/turbulenceProperties"),
+        "constant/transportProperties": of.render(
+            "dambreak/constant/transportProperties",
+            nu_water=f"{nu_water:.17g}",
+            rho_water=f"{RHO_WATER:g}",
+            nu_air=f"{NU_AIR:g}",
+            rho_air=f"{RHO_AIR:g}",
+            sigma=f"{SIGMA:g}",
+        ),
+        "0/U": of.render("dambreak/0/U"),
+        "0/p_rgh": of.render("dambreak/0/p_rgh"),
+        "0/alpha.water": of.render("dambreak/0/alpha.water"),
     }
-    "pcorr.*" { solver PCG; preconditioner DIC; tolerance 1e-5; relTol 0; }
-    p_rgh { solver PCG; preconditioner DIC; tolerance 1e-7; relTol 0.05; }
-    p_rghFinal { solver PCG; preconditioner DIC; tolerance 1e-7; relTol 0; }
-    U { solver smoothSolver; smoother symGaussSeidel; tolerance 1e-6; relTol 0; }
-}
-PIMPLE
-{
-    momentumPredictor no;
-    nOuterCorrectors 1;
-    nCorrectors     3;
-    nNonOrthogonalCorrectors 0;
-}
-relaxationFactors { equations { ".*" 1; } }
-""",
-        ),
-        "system/setFieldsDict": of.foam_file(
-            "system/setFieldsDict",
-            f"""
-defaultFieldValues ( volScalarFieldValue alpha.water 0 );
-regions
-(
-    boxToCell
-    {{
-        box (-1 -1 -1) ({WATER_COLUMN[0]:.6g} {WATER_COLUMN[1]:.6g} 1);
-        fieldValues ( volScalarFieldValue alpha.water 1 );
-    }}
-);
-""",
-        ),
-        "constant/g": of.foam_file(
-            "constant/g",
-            f"dimensions [0 1 -2 0 0 0 0];\nvalue (0 {-GRAVITY:.6g} 0);",
-            cls="uniformDimensionedVectorField",
-        ),
-        "constant/turbulenceProperties": of.foam_file("constant/turbulenceProperties", "simulationType laminar;"),
-        "constant/transportProperties": of.foam_file(
-            "constant/transportProperties",
-            f"""
-phases (water air);
-water {{ transportModel Newtonian; nu {nu_water:.17g}; rho {RHO_WATER:g}; }}
-air {{ transportModel Newtonian; nu {NU_AIR:g}; rho {RHO_AIR:g}; }}
-sigma {SIGMA:g};
-""",
-        ),
-        "0/U": _field(
-            "0/U",
-            "volVectorField",
-            "[0 1 -1 0 0 0 0]",
-            "uniform (0 0 0)",
-            {
-                "leftWall": wall_u,
-                "rightWall": wall_u,
-                "lowerWall": wall_u,
-                "atmosphere": "type pressureInletOutletVelocity;\n        value uniform (0 0 0);",
-            },
-        ),
-        "0/p_rgh": _field(
-            "0/p_rgh",
-            "volScalarField",
-            "[1 -1 -2 0 0 0 0]",
-            "uniform 0",
-            {
-                "leftWall": "type fixedFluxPressure;\n        value uniform 0;",
-                "rightWall": "type fixedFluxPressure;\n        value uniform 0;",
-                "lowerWall": "type fixedFluxPressure;\n        value uniform 0;",
-                "atmosphere": "type totalPressure;\n        p0 uniform 0;",
-            },
-        ),
-        "0/alpha.water": _field(
-            "0/alpha.water",
-            "volScalarField",
-            "[0 0 0 0 0 0 0]",
-            "uniform 0",
-            {
-                "leftWall": "type zeroGradient;",
-                "rightWall": "type zeroGradient;",
-                "lowerWall": "type zeroGradient;",
-                "atmosphere": "type inletOutlet;\n        inletValue uniform 0;\n        value uniform 0;",
-            },
-        ),
-    }
-    return files
 
 
 def surge_front(cell_centres: np.ndarray, alpha: np.ndarray, threshold: float = 0.5) -> float:
@@ -378,71 +226,10 @@ def simulate(
     }
 
 
-def preset_settings(preset: str) -> dict[str, Any]:
-    """The solver settings of ``preset`` ("paper" or "small"), a copy."""
-    return dict(PRESETS[check_preset(preset)])
-
-
-def build_resampler(settings: Mapping[str, Any], workdir: Path, benchmark: Benchmark | None = None) -> of.Resampler:
-    """Mesh the case once (in ``workdir/mesh``) and compute the interpolation weights to the benchmark grid."""
-    bench = benchmark or _benchmark()
-    mesh_dir = Path(workdir) / "mesh"
-    shutil.rmtree(mesh_dir, ignore_errors=True)
-    mesh_dir.mkdir(parents=True)
-    of.write_case(mesh_dir, case_files(1e-6, settings))
-    of.run_tool(mesh_dir, "blockMesh")
-    mesh = of.read_mesh(mesh_dir)
-    solid = np.isin(bench.cell_type(), bench.solid_codes)
-    return of.build_resampler(mesh, bench.coords(), solid, bench.channels, BOUNDARY_VALUES)
-
-
-def generate_dambreak(
-    preset: str = "paper",
-    seed: int = 0,
-    workdir: Path | None = None,
-    progress: bool = True,
-    *,
-    workers: int = 1,
-    executor: Any = None,
-    benchmark: Benchmark | None = None,
-    settings: Mapping[str, Any] | None = None,
-    keep_cases: bool = False,
-) -> GeneratedData:
-    """Run the dambreak sweep for ``preset`` with interFoam and return it for the dataset layer.
-
-    nu_w comes from :func:`interleaved_sweep` over the benchmark range with ``default_rng(seed)``.
-    Runs are cached under ``workdir`` (a temporary directory if None), so an interrupted generation
-    resumes; ``workers`` / ``executor`` as in :func:`~dks_gym.solvers.openfoam.run_all`. ``settings``
-    overrides the preset's solver settings (validation studies); ``keep_cases`` keeps every OpenFOAM
-    case directory. The per-run water volume, outflow and surge front are returned in ``extras``.
-    """
-    of.check_openfoam(("blockMesh", "setFields", "interFoam", "postProcess"))
-    bench = benchmark or _benchmark()
-    conf = of.merge_settings("dambreak", preset_settings(preset), settings)
-    if not (float(conf["frame_dt"]) > 0 and int(conf["n_frames"]) >= 1 and 0 < float(conf["max_co"]) <= 5):
-        raise ValueError(f"need frame_dt > 0, n_frames >= 1 and 0 < max_co <= 5, got {conf}")
-    cell_counts(float(conf["cell_size"]))
-    train, test, runs = of.sweep_runs(bench, conf, seed)
-    temporary = workdir is None
-    workdir = Path(tempfile.mkdtemp(prefix="dks-dambreak-")) if temporary else Path(workdir)
-    resampler = build_resampler(conf, workdir, bench)
-    paths = of.run_all(
-        simulate, runs, name="dambreak", settings=conf, resampler=resampler, workdir=workdir,
-        workers=workers, executor=executor, progress=progress, keep_cases=keep_cases,
-    )  # fmt: skip
-    extras = of.collect_extras(paths, runs, ("water_volume", "water_outflow", "surge_front"))
-    build = str(of.load_run(paths[(runs[0].split, runs[0].index)])["build"])
-    time = float(conf["frame_dt"]) * np.arange(1, int(conf["n_frames"]) + 1)
+def _describe(conf: Mapping[str, Any]) -> dict[str, Any]:
+    """The dambreak's own entries of the file's generator metadata."""
     nx, ny = cell_counts(float(conf["cell_size"]))
-    generator = {
-        "name": __name__,
-        "version": GENERATOR_VERSION,
-        "preset": preset,
-        "seed": int(seed),
-        "solver": "OpenFOAM interFoam (laminar, VOF with MULES)",
-        "openfoam_build": build,
-        "settings": conf,
-        "mesh_cells": resampler.n_cells,
+    return {
         "mesh_counts": {"x": nx, "y": ny},
         "water_column": list(WATER_COLUMN),
         "rho_water": RHO_WATER, "rho_air": RHO_AIR, "nu_air": NU_AIR, "sigma": SIGMA, "g": GRAVITY,
@@ -452,13 +239,24 @@ def generate_dambreak(
                    "water_outflow": "m^3 that left through the open top by every frame",
                    "surge_front": "m, where alpha.water crosses 0.5 on the floor row of the solver mesh"},
     }  # fmt: skip
-    return of.generated_data(
-        bench,
-        time,
-        {"train": train, "test": test},
-        paths,
-        runs,
-        generator,
-        extras,
-        cleanup=workdir if temporary else None,
-    )
+
+
+#: The dambreak benchmark's generator: ``generate_dambreak(DAMBREAK, preset, seed=..., workdir=..., ...)``.
+generate_dambreak = of.SweepGenerator(
+    name="dambreak",
+    module=__name__,
+    version=GENERATOR_VERSION,
+    solver="OpenFOAM interFoam (laminar, VOF with MULES)",
+    tools=("blockMesh", "setFields", "interFoam", "postProcess"),
+    presets=PRESETS,
+    check_settings=check_settings,
+    case_files=case_files,
+    mesh_param=1e-6,
+    boundary_values=BOUNDARY_VALUES,
+    simulate=simulate,
+    extras=("water_volume", "water_outflow", "surge_front"),
+    first_frame=1,
+    describe=_describe,
+)
+preset_settings = generate_dambreak.preset_settings
+build_resampler = generate_dambreak.build_resampler

@@ -6,7 +6,9 @@ everything those runs share, independent of the physics:
 * :func:`check_openfoam` finds the solvers and says how to install them when they are missing;
   :func:`foam_env` is the environment they run in (Debian's ``openfoam`` package only needs
   ``WM_PROJECT_DIR``; its ``etc/bashrc`` is never sourced).
-* :func:`foam_file` / :func:`write_case` write dictionaries; :func:`run_tool` runs one utility or solver
+* :func:`render` fills in a case-file template (``templates/``: every dictionary of the two cases as it
+  is written, with ``$name`` placeholders), :func:`block_mesh_dict` the one for a block mesh;
+  :func:`write_case` writes a case's files (atomically); :func:`run_tool` runs one utility or solver
   with its log in the case directory and raises :class:`OpenFOAMError` quoting the log on failure.
 * :func:`read_mesh` / :func:`read_frames` read cell centres, volumes, boundary faces and fields with
   fluidfoam (binary or ascii output).
@@ -18,6 +20,9 @@ everything those runs share, independent of the physics:
   result as ``.npz`` under the work directory (a rerun skips finished runs; a killed run leaves no
   partial file), keeps the case directory and its logs of a failed run and reports every failure at
   the end with a tqdm progress bar over runs meanwhile.
+* :class:`SweepGenerator` is the data generator both CFD benchmarks share: a sweep of the benchmark's
+  parameter, one cached run per value, streamed to the dataset layer; each case module gives it its
+  case files, its solver run and its metadata.
 """
 
 from __future__ import annotations
@@ -28,10 +33,13 @@ import json
 import os
 import re
 import shutil
+import string
 import subprocess
+import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +47,8 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import Delaunay, cKDTree
 
-from ..benchmarks.base import GeneratedData, GeneratorUnavailable, interleaved_sweep
+from ..atomic import atomic_path, atomic_write_text
+from ..benchmarks.base import Benchmark, GeneratedData, GeneratorUnavailable, check_preset, interleaved_sweep
 
 #: Where Debian's ``openfoam`` package installs its data files; override with ``$WM_PROJECT_DIR``.
 DEFAULT_PROJECT_DIR = "/usr/share/openfoam"
@@ -120,29 +129,49 @@ def openfoam_version() -> str | None:
 
 # Case files ---------------------------------------------------------------------------------------------
 
-_HEADER = """FoamFile
-{{
-    version     2.0;
-    format      ascii;
-    class       {cls};
-    location    "{location}";
-    object      {obj};
-}}
-"""
+def render(template: str, **values: str) -> str:
+    """The case file ``templates/<template>`` (e.g. ``"cylinder/system/controlDict"``) with every ``$name``
+    placeholder replaced by ``values[name]``; the values must match the placeholders exactly."""
+    node = resources.files(__package__) / "templates"
+    for part in template.split("/"):
+        node = node / part
+    text = node.read_text(encoding="utf-8")
+    pattern = string.Template.pattern
+    wanted = {m.group("named") or m.group("braced") for m in pattern.finditer(text)} - {None}
+    if wanted != set(values):
+        raise ValueError(
+            f"template {template} takes {sorted(wanted)}, got {sorted(values)}: missing "
+            f"{sorted(wanted - set(values))}, unknown {sorted(set(values) - wanted)}"
+        )
+    return string.Template(text).substitute(values)
 
 
-def foam_file(path: str, body: str, cls: str = "dictionary") -> str:
-    """Text of an OpenFOAM dictionary file at case-relative ``path`` (e.g. ``"system/controlDict"``)."""
-    location, _, obj = path.rpartition("/")
-    return _HEADER.format(cls=cls, location=location, obj=obj) + "\n" + body.strip() + "\n"
+def block_mesh_dict(
+    vertices: Sequence[str], blocks: Sequence[str], edges: Sequence[str], patches: Mapping[str, tuple[str, Sequence[str]]]
+) -> str:
+    """``system/blockMeshDict`` from its entry lines: vertices, blocks, curved edges (may be empty) and
+    ``{patch: (type, face lines)}`` in the order they are written; the front and back are one empty patch."""
+    boundary = "\n".join(
+        f"    {name}\n    {{\n        type {kind};\n        faces\n        (\n" + "\n".join(faces) + "\n        );\n    }"
+        for name, (kind, faces) in patches.items()
+    )
+    # The template's edge list ends right after the placeholder, so no edges leave no blank line.
+    return render(
+        "shared/system/blockMeshDict",
+        vertices="\n".join(vertices),
+        blocks="\n".join(blocks),
+        edges="".join(f"{edge}\n" for edge in edges),
+        boundary=boundary,
+    )
 
 
 def write_case(case_dir: Path, files: Mapping[str, str]) -> None:
-    """Write ``{case-relative path: text}`` under ``case_dir``, creating directories."""
+    """Write ``{case-relative path: text}`` under ``case_dir``, creating directories; each file atomically,
+    so a solver never reads a half-written dictionary."""
     for rel, text in files.items():
         target = Path(case_dir) / rel
         target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_text(text)
+        atomic_write_text(target, text)
 
 
 def run_tool(case_dir: Path, tool: str, *args: str, log_name: str | None = None, timeout: float | None = None) -> Path:
@@ -474,9 +503,9 @@ def execute_run(
     result = {**result, "wall_s": np.array(time.perf_counter() - start)}
     target = Path(result_path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.stem}.tmp-{os.getpid()}.npz")
-    np.savez(tmp, **result)
-    os.replace(tmp, target)  # a run killed before this line leaves no result, so it is redone
+    # A run killed before the rename leaves no result, so it is redone.
+    with atomic_path(target, suffix=".npz") as tmp:  # np.savez would append .npz to any other name
+        np.savez(tmp, **result)
     if not keep_case:
         shutil.rmtree(case, ignore_errors=True)
     return str(target)
@@ -629,3 +658,105 @@ def iter_cached(
             yield r.split, r.index, data[key]
     if cleanup is not None:
         shutil.rmtree(cleanup, ignore_errors=True)
+
+
+# The generator ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SweepGenerator:
+    """The data generator of an OpenFOAM benchmark: one run per parameter value, cached, resampled, streamed.
+
+    A case module (:mod:`~dks_gym.solvers.cylinder_case`, :mod:`~dks_gym.solvers.dambreak_case`) builds
+    one from what is its own, and the benchmark names it as its generator entry point. Calling it as
+    ``generator(benchmark, preset, ...)`` runs the sweep (see :meth:`__call__`).
+    """
+
+    name: str  # the benchmark's name: settings errors, run cache keys, temporary directory
+    module: str  # the case module, recorded as the generator's name in the file
+    version: str  # the case's GENERATOR_VERSION, recorded in the file
+    solver: str  # how the case is solved, recorded in the file
+    tools: tuple[str, ...]  # the OpenFOAM executables the runs need
+    presets: Mapping[str, Mapping[str, Any]]  # solver settings per preset; every key enters the run cache key
+    check_settings: Callable[[Mapping[str, Any]], None]  # raises a ValueError naming a setting that cannot work
+    case_files: Callable[[float, Mapping[str, Any]], dict[str, str]]  # case files at a parameter value
+    mesh_param: float  # a parameter value to mesh the case at for the resampler (the mesh does not depend on it)
+    boundary_values: Mapping[str, Mapping[str, float | None]]  # patch -> channel -> value, see build_resampler
+    simulate: Simulate  # one run; a module-level function, so that process pools can pickle it
+    extras: tuple[str, ...]  # per-run series of the run results returned as the dataset's extras
+    first_frame: int  # the first frame's time in frames: time = frame_dt * (first_frame + arange(n_frames))
+    describe: Callable[[Mapping[str, Any]], dict[str, Any]]  # the case's own metadata for the settings
+
+    def preset_settings(self, preset: str) -> dict[str, Any]:
+        """The solver settings of ``preset`` ("paper" or "small"), a copy."""
+        return dict(self.presets[check_preset(preset)])
+
+    def build_resampler(self, settings: Mapping[str, Any], workdir: Path, benchmark: Benchmark) -> Resampler:
+        """Mesh the case once (in ``workdir/mesh``) and compute the interpolation weights to ``benchmark``'s grid."""
+        mesh_dir = Path(workdir) / "mesh"
+        shutil.rmtree(mesh_dir, ignore_errors=True)
+        mesh_dir.mkdir(parents=True)
+        write_case(mesh_dir, self.case_files(self.mesh_param, settings))
+        run_tool(mesh_dir, "blockMesh")
+        mesh = read_mesh(mesh_dir)
+        solid = np.isin(benchmark.cell_type(), benchmark.solid_codes)
+        return build_resampler(mesh, benchmark.coords(), solid, benchmark.channels, self.boundary_values)
+
+    def __call__(
+        self,
+        benchmark: Benchmark,
+        preset: str = "paper",
+        *,
+        seed: int = 0,
+        workdir: Path | None = None,
+        progress: bool = True,
+        workers: int = 1,
+        executor: cf.Executor | None = None,
+        settings: Mapping[str, Any] | None = None,
+        keep_cases: bool = False,
+        **options: Any,
+    ) -> GeneratedData:
+        """Run ``benchmark``'s sweep for ``preset`` with OpenFOAM and return it for the dataset layer.
+
+        OpenFOAM must be installed (otherwise :class:`OpenFOAMMissing`, a GeneratorUnavailable, says how).
+        The parameter values come from :func:`interleaved_sweep` over the benchmark's range with
+        ``default_rng(seed)`` (:func:`sweep_runs`). Runs are cached under ``workdir`` (a temporary
+        directory if None), so an interrupted generation resumes; ``workers`` is the size of the process
+        pool (1 runs in this process), ``executor`` any :class:`concurrent.futures.Executor` instead
+        (e.g. ``dask.distributed.Client.get_executor()``, whose workers must see ``workdir``), as in
+        :func:`run_all`. ``settings`` overrides solver settings of the preset (mesh and validation
+        studies); ``keep_cases`` keeps every OpenFOAM case directory. The per-run series named by
+        :attr:`extras` come back in ``extras`` (``{split: {name: (n_traj, ...)}}``).
+        """
+        if options:
+            raise ValueError(
+                f"unknown option(s) for the {benchmark.name} generator: {', '.join(sorted(options))}; "
+                "it accepts preset, seed, workdir, progress, workers, executor, settings and keep_cases"
+            )
+        check_openfoam(self.tools)
+        conf = merge_settings(self.name, self.preset_settings(preset), settings)
+        self.check_settings(conf)
+        train, test, runs = sweep_runs(benchmark, conf, seed)
+        temporary = workdir is None
+        workdir = Path(tempfile.mkdtemp(prefix=f"dks-{self.name}-")) if temporary else Path(workdir)
+        resampler = self.build_resampler(conf, workdir, benchmark)
+        paths = run_all(
+            self.simulate, runs, name=self.name, settings=conf, resampler=resampler, workdir=workdir,
+            workers=workers, executor=executor, progress=progress, keep_cases=keep_cases,
+        )  # fmt: skip
+        extras = collect_extras(paths, runs, self.extras)
+        build = str(load_run(paths[(runs[0].split, runs[0].index)])["build"])
+        times = float(conf["frame_dt"]) * np.arange(self.first_frame, self.first_frame + int(conf["n_frames"]))
+        generator = {
+            "name": self.module,
+            "version": self.version,
+            "preset": preset,
+            "seed": int(seed),
+            "solver": self.solver,
+            "openfoam_build": build,
+            "settings": conf,
+            "mesh_cells": resampler.n_cells,
+            **self.describe(conf),
+        }
+        cleanup = workdir if temporary else None
+        return generated_data(benchmark, times, {"train": train, "test": test}, paths, runs, generator, extras, cleanup)

@@ -34,11 +34,13 @@ from __future__ import annotations
 import math
 import time as _time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from ..benchmarks.base import Benchmark, GeneratedData, check_preset, interleaved_sweep
 from . import lbm
 
 EXTENT = ((-8.0, 16.0), (-4.0, 4.0), (-4.0, 4.0))
@@ -51,6 +53,15 @@ DEFAULTS: dict[str, Any] = {"frame_dt": 0.5, "smagorinsky": 0.15, "perturbation"
 # walls=False drops the no-slip y walls (the y faces become periodic) and half_width widens the y-z
 # cross-section: both only for validating the drag against unconfined correlations (force-only runs);
 # the benchmark always has its walls at y = +-4R.
+
+GENERATOR_VERSION = "1"
+# Solver settings per preset: lattice nodes per R, lattice inflow speed, spin-up (R/U) before the first
+# frame, frames; trajectory counts (n_train, n_test).
+PRESET_SETTINGS: dict[str, dict[str, Any]] = {
+    "paper": {"resolution": 8, "u_lattice": 0.05, "spin_up": 50.0, "n_frames": 100},
+    "small": {"resolution": 2, "u_lattice": 0.1, "spin_up": 10.0, "n_frames": 10},
+}
+PRESET_COUNTS = {"paper": (90, 11), "small": (4, 2)}
 
 
 def lattice_axes(resolution: int, extension: float = 0.0, half_width: float = 4.0
@@ -286,3 +297,92 @@ def simulate(re: np.ndarray, settings: dict[str, Any], **kwargs: Any) -> dict[st
             out[key][part] = value
     out.update(info)
     return out
+
+
+def generate_sphere(
+    benchmark: Benchmark,
+    preset: str = "paper",
+    *,
+    seed: int = 0,
+    workdir: Path | None = None,
+    progress: bool = True,
+    device: str = "cpu",
+    compile: bool | None = None,
+    max_batch: int | None = None,
+    **options: Any,
+) -> GeneratedData:
+    """Run the lattice Boltzmann sphere for the preset's Reynolds numbers ("paper": 90 / 11; "small": 4 / 2).
+
+    The generator of :data:`dks_gym.benchmarks.sphere.SPHERE` (``SPHERE.generate(...)`` calls it with the
+    benchmark). Re comes from :func:`interleaved_sweep` over [59.5, 990.5] with
+    ``np.random.default_rng(seed)``. All runs of a split advance together as one batch on ``device``
+    ("cpu", "cuda", "cuda:1" ...), split into batches that fit its memory (or at most ``max_batch``).
+    ``compile`` (default: on for CUDA, off on the CPU) wraps the step in torch.compile. Solver settings
+    can be overridden by keyword: resolution (nodes per R), u_lattice, spin_up (R/U), n_frames, frame_dt
+    is fixed at 0.5 R/U, smagorinsky, perturbation, sponge (R), sponge_strength. ``time`` counts from the
+    first frame (taken after ``spin_up``). Drag and lift coefficients at every frame are kept in the file
+    as extras ``drag``, ``lift`` (y, wall-normal) and ``lift_z``. The runs happen when ``trajectories`` is
+    iterated; ``workdir`` is unused (nothing is cached, so an interrupted generation starts again).
+    """
+    check_preset(preset)
+    allowed = set(SETTING_KEYS) - {"frame_dt", "walls", "half_width"}
+    unknown = set(options) - allowed
+    if unknown:
+        raise ValueError(
+            f"unknown option(s) for the sphere generator: {', '.join(sorted(unknown))}; it accepts preset, "
+            f"seed, workdir, progress, device, compile, max_batch and the solver settings {', '.join(sorted(allowed))}"
+        )
+    settings = {**DEFAULTS, **PRESET_SETTINGS[preset], **options, "frame_dt": benchmark.dt}
+    n_train, n_test = PRESET_COUNTS[preset]
+    low, high = benchmark.param_range
+    re_train, re_test = interleaved_sweep(low, high, n_train, n_test, np.random.default_rng(seed))
+    n_frames = int(settings["n_frames"])
+    if n_frames < 2:
+        raise ValueError(f"n_frames must be at least 2, got {n_frames}")
+    time = benchmark.dt * np.arange(n_frames)
+    coords, cell_type = benchmark.coords(), benchmark.cell_type()
+    re_all = np.concatenate([re_train, re_test])
+    extras: dict[str, dict[str, np.ndarray]] = {
+        split: {k: np.zeros((n, n_frames)) for k in ("drag", "lift", "lift_z")}
+        for split, n in (("train", n_train), ("test", n_test))
+    }
+    info: dict[str, Any] = {}
+
+    def trajectories() -> Iterator[tuple[str, int, np.ndarray]]:
+        batches = run_batches(
+            re_all, settings, coords=coords, cell_type=cell_type, device=device, compile=compile,
+            max_batch=max_batch, progress=progress, info=info,
+        )
+        for part, res in batches:
+            for j, i in enumerate(range(part.start, part.stop)):
+                split, index = ("train", i) if i < n_train else ("test", i - n_train)
+                for key in ("drag", "lift", "lift_z"):
+                    extras[split][key][index] = res[key][j]
+                yield split, index, res["fields"][j]
+
+    generator: dict[str, Any] = {
+        # The generator's name since version 1, when it was a method of the benchmark; kept so that files
+        # generated before and after the move are identical.
+        "name": "dks_gym.benchmarks.sphere",
+        "version": GENERATOR_VERSION,
+        "preset": preset,
+        "seed": int(seed),
+        "solver": "batched lattice Boltzmann D3Q19, BGK + Smagorinsky, float32 (dks_gym.solvers.lbm)",
+        "boundaries": "x=-8R velocity inlet (NEE), y=+-4R no-slip walls (half-way bounce-back), z periodic, "
+        "pressure outlet (NEE) behind an absorbing layer in 16R < x < 16R + sponge; sphere by half-way bounce-back",
+        "settings": {k: settings[k] for k in SETTING_KEYS},
+        "device": str(device),
+        "lattice": describe(settings),
+        "units": "lengths R, velocity U, time R/U, p kinematic in U^2 relative to the outlet; Re = U 2R / nu",
+        "time": "time counts from the first frame, taken after spin_up R/U from an impulsive start",
+        "extras": "drag, lift (y), lift_z: force coefficients F / (0.5 U^2 pi R^2) at every frame",
+    }
+    return GeneratedData(
+        time=time,
+        params={"train": re_train, "test": re_test},
+        trajectories=trajectories(),
+        generator=generator,
+        coords=coords,
+        cell_type=cell_type,
+        extras=extras,
+    )

@@ -2,9 +2,9 @@
 
 The wrapper turns the raw sensor stream into a belief over the latent state z (dimension r) and a
 reconstruction of the full field. Per step: the env advances one frame and reads the sensors; the
-filter forecasts z with the model (Eq. 13-14) and, unless ``filter="none"`` (the forward run), updates
-it with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env actually read
-(so ``sensor_mode="select"`` layouts are followed step by step).
+assimilation core forecasts z with the model (Eq. 13-14) and, unless ``filter="forward"``, updates it
+with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env actually read (so
+``sensor_mode="select"`` layouts are followed step by step).
 
 * observation: ``[mean z (r); log diag P (r)]`` as float32, the filter's belief;
 * ``info["estimate"]``: the decoded mean, ``(C, *grid)`` in physical units; ``info["mse"]``,
@@ -16,6 +16,7 @@ it with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the 
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import gymnasium as gym
@@ -23,41 +24,59 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from ..assimilation import Assimilation, FilterConfig, Snapshot, resolve_model
 from ..envs.sensing import SensingEnv
-from .assimilator import REWARDS, FilterConfig, LatentAssimilator, resolve_model
+
+REWARDS = ("mse", "normalized_mse")
+
+
+def build_assimilation(base: SensingEnv, model: Any, filter: str | None, config: FilterConfig | None, *,
+                       r: int | None, model_preset: str, T: int, reward: str, device: str, dtype: torch.dtype,
+                       train_if_missing: bool) -> Assimilation:
+    """The assimilation core a filter wrapper runs: the model resolved for the env's dataset, the config
+    with ``filter`` (when given) as its kind. Shared by :class:`LatentFilter` and the vector env."""
+    if reward not in REWARDS:
+        raise ValueError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
+    config = FilterConfig() if config is None else config
+    if not isinstance(config, FilterConfig):
+        raise TypeError(f"config must be a dks_gym.FilterConfig, got {type(config).__name__}")
+    if filter is not None:
+        config = dataclasses.replace(config, kind=filter)
+    latent = resolve_model(model, base.benchmark.name, r=r, preset=model_preset, T=T, device=device,
+                           train_if_missing=train_if_missing, dataset=base.dataset)
+    return Assimilation(latent, config, device=device, dtype=dtype)
+
+
+def belief_space(r: int) -> spaces.Box:
+    """The belief [mean z (r); log diag P (r)] as a float32 Box."""
+    big = np.finfo(np.float32).max
+    return spaces.Box(-big, big, shape=(2 * r,), dtype=np.float32)
 
 
 class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """Assimilate a SensingEnv's readings into a latent model's state with an EKF, an EnKF or no update.
+    """Assimilate a SensingEnv's readings into a latent model's state with an EKF, an EnKF or a forward run.
 
     ``model``: "koopman", "pdmd", "mlp", "xlstm" (a cached checkpoint of ``model_preset``, ``r``
     (default 32) and multi-step horizon ``T``, trained on the env's dataset; ``train_if_missing=True`` trains
-    it) or a model object.
-    ``filter``: "ekf", "enkf" or "none" (forward run). ``initial``: "approximate" (mean encoded first
-    frame of the training trajectories) or "exact" (encode the true first frame). ``P0``, ``Q``: initial
-    and process covariances (multiples of I); R = sigma^2 I from the env. EnKF: ``n_members``,
-    ``inflation``; ``seed`` seeds its draws when ``reset`` gets none.
+    it, otherwise a missing checkpoint raises ``CheckpointMissing``) or a model object.
+    ``filter``: "ekf", "enkf" or "forward" (default: ``config.kind``, "ekf"). ``config``: a
+    :class:`~dks_gym.FilterConfig` with everything else (initial condition, P0, Q, ensemble size, inflation,
+    localization, divergence policy, seed); R = sigma^2 I comes from the env.
     """
 
     def __init__(
         self,
         env: gym.Env,
         model: Any = "koopman",
-        filter: str = "ekf",
+        filter: str | None = None,
         *,
+        config: FilterConfig | None = None,
         r: int | None = None,
         model_preset: str = "lite",
         T: int = 1,
-        initial: str = "approximate",
-        P0: float = 1.0,
-        Q: float = 1e-4,
-        n_members: int = 20,
-        inflation: float = 1.0,
         reward: str = "mse",
         device: str = "cpu",
         dtype: torch.dtype = torch.float32,
-        seed: int = 0,
-        on_divergence: str = "raise",
         train_if_missing: bool = False,
     ) -> None:
         args = {k: v for k, v in locals().items() if k not in ("self", "env", "__class__")}
@@ -66,45 +85,38 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         base = env.unwrapped
         if not isinstance(base, SensingEnv):
             raise TypeError(f"LatentFilter wraps a dks_gym SensingEnv, got {type(base).__name__}")
-        if reward not in REWARDS:
-            raise ValueError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
-        config = FilterConfig(filter=filter, initial=initial, P0=P0, Q=Q, n_members=n_members,
-                              inflation=inflation, on_divergence=on_divergence)
-        self.model = resolve_model(model, base.benchmark.name, r=r, preset=model_preset, T=T, device=device,
-                                   train_if_missing=train_if_missing, dataset=base.dataset)
-        self.assimilator = LatentAssimilator(self.model, config, device=device, dtype=dtype)
-        self.filter_kind = filter
+        self.assimilation = build_assimilation(base, model, filter, config, r=r, model_preset=model_preset, T=T,
+                                               reward=reward, device=device, dtype=dtype,
+                                               train_if_missing=train_if_missing)
+        self.model = self.assimilation.model
+        self.config = self.assimilation.config
         self.reward_kind = reward
-        self.seed = seed
-        big = np.finfo(np.float32).max
-        self.observation_space = spaces.Box(-big, big, shape=(2 * self.model.r,), dtype=np.float32)
+        self.observation_space = belief_space(self.model.r)
         self.estimate: np.ndarray | None = None
 
     @property
     def filter(self):
         """The running filter (an EKF or EnKF object, with ``.mean``, ``.cov``, ``.diagnostics``)."""
-        return self.assimilator.filter
+        return self.assimilation.filter
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         _, info = self.env.reset(seed=seed, options=options)
-        self.assimilator.start([self.env.unwrapped], seed=self.seed if seed is None else seed)
-        return self.assimilator.belief()[0], self._with_estimate(info)
+        snap = self.assimilation.start([self.env.unwrapped], seed=self.config.seed if seed is None else seed)
+        return self.assimilation.belief()[0], self._info(info, snap)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         obs, _, terminated, truncated, info = self.env.step(action)
-        self.assimilator.step(obs[None], info["sensors"][None])
-        info = self._with_estimate(info)
-        info.update({k: float(v[0]) for k, v in self.assimilator.step_diagnostics().items()})
+        snap = self.assimilation.step([self.env.unwrapped], obs[None], info["sensors"][None])
+        info = self._info(info, snap)
+        info.update({k: float(v[0]) for k, v in snap.diagnostics.items()})
         reward = -(info["mse"] if self.reward_kind == "mse" else info["normalized_mse"])
-        return self.assimilator.belief()[0], reward, terminated, truncated, info
+        return self.assimilation.belief()[0], reward, terminated, truncated, info
 
-    def _with_estimate(self, info: dict[str, Any]) -> dict[str, Any]:
-        estimate = self.assimilator.estimate()
-        mse, nmse = self.assimilator.errors(estimate, [self.env.unwrapped])
-        self.estimate = estimate[0].cpu().numpy().astype(np.float32)
+    def _info(self, info: dict[str, Any], snap: Snapshot) -> dict[str, Any]:
+        self.estimate = snap.estimate[0].cpu().numpy().astype(np.float32)
         info = dict(info)
-        info.update(estimate=self.estimate, mse=float(mse[0]), normalized_mse=float(nmse[0]),
-                    latent_mean=self.filter.mean[0].detach().cpu().numpy())
+        info.update(estimate=self.estimate, mse=float(snap.mse[0]), normalized_mse=float(snap.normalized_mse[0]),
+                    latent_mean=snap.latent_mean[0])
         return info
 
     def render(self) -> np.ndarray | None:
@@ -118,7 +130,7 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         truth, est = base.true_state[c], self.estimate[c]
         return render_panels(
             base.benchmark, base.dataset.coords,
-            [(f"truth {base.render_channel}", truth), (f"estimate ({self.filter_kind})", est),
+            [(f"truth {base.render_channel}", truth), (f"estimate ({self.config.kind})", est),
              ("error", est - truth)],
             base.sensors, base.fluid_mask,
         )

@@ -14,22 +14,22 @@ from __future__ import annotations
 
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from ..assimilation import FilterConfig, Snapshot
 from ..envs.sensing import SensingEnv
-from .assimilator import REWARDS, FilterConfig, LatentAssimilator, resolve_model
+from .latent_filter import belief_space, build_assimilation
 
 
 class LatentFilterVectorEnv(VectorEnv):
     """``num_envs`` SensingEnvs of one benchmark assimilated by one batched EKF/EnKF (or forward run).
 
-    Filter arguments are those of :class:`~dks_gym.wrappers.LatentFilter`; every other keyword goes to
-    each :class:`~dks_gym.envs.SensingEnv` (``preset``, ``sensor_mode``, ``noise_level`` ...).
+    ``model``, ``filter``, ``config`` and the model options are those of :class:`~dks_gym.wrappers.LatentFilter`;
+    every other keyword goes to each :class:`~dks_gym.envs.SensingEnv` (``preset``, ``sensor_mode``,
+    ``noise_level`` ...).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
@@ -40,48 +40,39 @@ class LatentFilterVectorEnv(VectorEnv):
         num_envs: int = 1,
         *,
         model: Any = "koopman",
-        filter: str = "ekf",
+        filter: str | None = None,
+        config: FilterConfig | None = None,
         r: int | None = None,
         model_preset: str = "lite",
         T: int = 1,
-        initial: str = "approximate",
-        P0: float = 1.0,
-        Q: float = 1e-4,
-        n_members: int = 20,
-        inflation: float = 1.0,
         reward: str = "mse",
         device: str = "cpu",
         dtype: torch.dtype = torch.float32,
-        seed: int = 0,
-        on_divergence: str = "raise",
         train_if_missing: bool = False,
         **env_kwargs: Any,
     ) -> None:
         if not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        if reward not in REWARDS:
-            raise ValueError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
-        config = FilterConfig(filter=filter, initial=initial, P0=P0, Q=Q, n_members=n_members,
-                              inflation=inflation, on_divergence=on_divergence)
         self.envs = [SensingEnv(benchmark, **env_kwargs) for _ in range(num_envs)]
         self.benchmark = self.envs[0].benchmark
-        self.model = resolve_model(model, self.benchmark.name, r=r, preset=model_preset, T=T, device=device,
-                                   train_if_missing=train_if_missing, dataset=self.envs[0].dataset)
-        self.assimilator = LatentAssimilator(self.model, config, device=device, dtype=dtype)
+        self.assimilation = build_assimilation(self.envs[0], model, filter, config, r=r, model_preset=model_preset,
+                                               T=T, reward=reward, device=device, dtype=dtype,
+                                               train_if_missing=train_if_missing)
+        self.model = self.assimilation.model
+        self.config = self.assimilation.config
         self.num_envs = num_envs
         self.reward_kind = reward
-        self.seed_ = seed
-        big = np.finfo(np.float32).max
-        self.single_observation_space = spaces.Box(-big, big, shape=(2 * self.model.r,), dtype=np.float32)
+        self.single_observation_space = belief_space(self.model.r)
         self.single_action_space = self.envs[0].action_space
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.render_mode = None
+        self._started = False
 
     @property
     def filter(self):
         """The running batched filter."""
-        return self.assimilator.filter
+        return self.assimilation.filter
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
         if seed is None or isinstance(seed, int):
@@ -91,21 +82,23 @@ class LatentFilterVectorEnv(VectorEnv):
                 raise ValueError(f"got {len(seed)} seeds for {self.num_envs} environments")
             seeds = list(seed)
         results = [e.reset(seed=s, options=options) for e, s in zip(self.envs, seeds)]
-        self.assimilator.start(self.envs, seed=self.seed_ if seeds[0] is None else seeds[0])
-        return self.assimilator.belief(), self._infos([info for _, info in results])
+        snap = self.assimilation.start(self.envs, seed=self.config.seed if seeds[0] is None else seeds[0])
+        self._started = True
+        return self.assimilation.belief(), self._infos([info for _, info in results], snap)
 
     def step(self, actions: Any):
-        if self.assimilator.filter is None:
+        if not self._started:
             raise RuntimeError("call reset() before step()")
         actions = list(actions) if self.envs[0].sensor_mode == "select" else [None] * self.num_envs
         results = [e.step(a) for e, a in zip(self.envs, actions)]
-        self.assimilator.step(np.stack([r[0] for r in results]), np.stack([r[4]["sensors"] for r in results]))
-        infos = self._infos([r[4] for r in results])
-        infos.update(self.assimilator.step_diagnostics())
+        snap = self.assimilation.step(self.envs, np.stack([r[0] for r in results]),
+                                      np.stack([r[4]["sensors"] for r in results]))
+        infos = self._infos([r[4] for r in results], snap)
+        infos.update(snap.diagnostics)
         rewards = -(infos["mse"] if self.reward_kind == "mse" else infos["normalized_mse"]).astype(np.float64)
         terminated = np.array([r[2] for r in results])
         truncated = np.array([r[3] for r in results])
-        obs = self.assimilator.belief()
+        obs = self.assimilation.belief()
         if np.any(terminated | truncated):
             # Episodes of one dataset have equal length, so they all end here; restart the whole batch.
             infos["final_obs"], infos["final_info"] = obs, dict(infos)
@@ -113,18 +106,17 @@ class LatentFilterVectorEnv(VectorEnv):
             infos["_final_info"] = np.ones(self.num_envs, dtype=bool)
             for e in self.envs:
                 e.reset()
-            self.assimilator.start(self.envs, seed=int(self.envs[0].noise_seed % (2**31)))
-            obs = self.assimilator.belief()
+            self.assimilation.start(self.envs, seed=int(self.envs[0].noise_seed % (2**31)))
+            obs = self.assimilation.belief()
         return obs, rewards, terminated, truncated, infos
 
-    def _infos(self, env_infos: list[dict[str, Any]]) -> dict[str, Any]:
+    def _infos(self, env_infos: list[dict[str, Any]], snap: Snapshot) -> dict[str, Any]:
         infos: dict[str, Any] = {
             key: np.array([info[key] for info in env_infos])
             for key in ("mu", "time_index", "trajectory", "sigma", "sensors")
         }
-        estimate = self.assimilator.estimate()
-        infos["mse"], infos["normalized_mse"] = self.assimilator.errors(estimate, self.envs)
-        infos["estimate"] = estimate.cpu().numpy().astype(np.float32)
+        infos["mse"], infos["normalized_mse"] = snap.mse, snap.normalized_mse
+        infos["estimate"] = snap.estimate.cpu().numpy().astype(np.float32)
         return infos
 
     def close_extras(self, **kwargs: Any) -> None:
@@ -192,10 +184,3 @@ def SB3VecEnv(venv: LatentFilterVectorEnv):  # noqa: N802 - a class factory, so 
 
     return _SB3VecEnv(venv)
 
-
-def register_vector_entry_points() -> None:
-    """Let ``gymnasium.make_vec(id, vectorization_mode="vector_entry_point")`` build a LatentFilterVectorEnv."""
-    from ..benchmarks import BENCHMARKS
-
-    for bench in BENCHMARKS.values():
-        gym.spec(bench.env_id).vector_entry_point = "dks_gym.wrappers.vector:LatentFilterVectorEnv"

@@ -8,15 +8,15 @@ fields, records the force coefficients every few lattice steps and writes a JSON
   velocity past the sphere is U / (1 - B), B = pi/64, so Cd_corr = Cd (1 - B)^2);
 * wake regime from the lift over the same window: its rms, and the Strouhal number St = f D / U of its
   dominant frequency (lift projected on its principal direction in the y-z plane);
-* one JSON per invocation under benchmarks/results/.
+* one JSON per invocation under validation/results/.
 
 Examples (CPU, minutes each)::
 
-    python benchmarks/sphere_validation.py --re 100 200 --resolution 4 --u-lattice 0.05 --time 40 \\
-        --out benchmarks/results/sphere_validation_cd_r4.json
-    python benchmarks/sphere_validation.py --turek 10 20 --out benchmarks/results/lbm_turek_2d1.json
-    python benchmarks/sphere_validation.py --re 350 --resolution 4 --u-lattice 0.05 --time 150 --average 75 \\
-        --out benchmarks/results/sphere_validation_re350_r4.json
+    python validation/sphere_validation.py --re 100 200 --resolution 4 --u-lattice 0.05 --time 40 \\
+        --out validation/results/sphere_validation_cd_r4.json
+    python validation/sphere_validation.py --turek 10 20 --out validation/results/lbm_turek_2d1.json
+    python validation/sphere_validation.py --re 350 --resolution 4 --u-lattice 0.05 --time 150 --average 75 \\
+        --out validation/results/sphere_validation_re350_r4.json
 
 Reference values: Schiller & Naumann (1933) correlation (about 5 % accurate for Re < 800);
 Strouhal number of the sphere wake at Re = 350: about 0.13-0.14 (Johnson & Patel 1999, J. Fluid
@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cylinder", type=int, nargs="*", default=None,
                     help="instead: the 2D solver on the cylinder benchmark's case at these resolutions (nodes per R), "
                          "at the first --re, spin-up --time, recording --average R/U (default 50)")
-    ap.add_argument("--plot", type=Path, default=None, help="instead: draw the figure from benchmarks/results into PATH")
+    ap.add_argument("--plot", type=Path, default=None, help="instead: draw the figure from validation/results into PATH")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.plot is not None:

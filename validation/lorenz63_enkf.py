@@ -10,7 +10,7 @@ is batched over seeds (one independent truth, observation stream and ensemble pe
 
 The truth is integrated in float64 NumPy, independently of the torch forecast the filter uses.
 
-    python benchmarks/lorenz63_enkf.py --cycles 20000 --seeds 8 --out benchmarks/results/lorenz63_enkf.json
+    python validation/lorenz63_enkf.py --cycles 20000 --seeds 8 --out validation/results/lorenz63_enkf.json
 """
 
 from __future__ import annotations
@@ -163,7 +163,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--float32", action="store_true", help="run the filter in float32 (default float64)")
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/lorenz63_enkf.json"))
+    parser.add_argument("--out", type=Path, default=Path("validation/results/lorenz63_enkf.json"))
     args = parser.parse_args()
     result = run_lorenz63_enkf(
         args.cycles,

@@ -18,7 +18,7 @@ is long enough for the shedding to have saturated.
 
 Usage::
 
-    python benchmarks/cylinder_mesh_study.py [--re 200 990] [--refine 1.15 2.3] [--workers 2] [--workdir DIR]
+    python validation/cylinder_mesh_study.py [--re 200 990] [--refine 1.15 2.3] [--workers 2] [--workdir DIR]
         [--spin-up 150] [--frames 100] [--spin-up-check 59.5 80 120]
 """
 

@@ -11,9 +11,9 @@ the criterion, if any, is measured rather than guessed. The JSON is rewritten (a
 stage; rerunning the command (with more stages) resumes from the checkpoints in ``--workdir`` and keeps
 the rows already in ``--out``.
 
-    OMP_NUM_THREADS=1 python benchmarks/training_schedule.py --models koopman --preset paper \\
-        --lr 1e-4 --stages 1000 2000 --out benchmarks/results/training_schedule_burgers.json
-    python benchmarks/training_schedule.py --device cuda --stages 1000 5000 20000    # a GPU session
+    OMP_NUM_THREADS=1 python validation/training_schedule.py --models koopman --preset paper \\
+        --lr 1e-4 --stages 1000 2000 --out validation/results/training_schedule_burgers.json
+    python validation/training_schedule.py --device cuda --stages 1000 5000 20000    # on a GPU
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ quadrature changes the Cole-Hopf solution, its distance to an independent pseudo
 (Fourier collocation + DOP853), and the drift of the mean of u, which the exact solution conserves.
 Run from the repository root:
 
-    OMP_NUM_THREADS=1 python benchmarks/burgers_convergence.py --out benchmarks/results/burgers_convergence.json
+    OMP_NUM_THREADS=1 python validation/burgers_convergence.py --out validation/results/burgers_convergence.json
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def reference_checks(t: float = T_FINAL) -> dict[str, dict[str, float]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/burgers_convergence.json"))
+    parser.add_argument("--out", type=Path, default=Path("validation/results/burgers_convergence.json"))
     parser.add_argument("--grids", type=int, nargs="+", default=[128, 256, 512, 1024, 2048])
     parser.add_argument("--repeats", type=int, default=2, help="timed runs of generate('paper'); the minimum is kept")
     args = parser.parse_args()

@@ -16,7 +16,7 @@ PySPH (pypr/pysph, pysph/examples/db_exp_data.py). Only the points with Z < 2 ap
 
 Usage::
 
-    python benchmarks/dambreak_validation.py [--preset paper|small] [--data FILE] [--workdir DIR] [--workers N]
+    python validation/dambreak_validation.py [--preset paper|small] [--data FILE] [--workdir DIR] [--workers N]
         [--plot FILE] [--frames-figure FILE]
 """
 

@@ -1,0 +1,142 @@
+"""How to filter, in one frozen object: :class:`FilterConfig`; and what an evaluation run holds fixed besides it.
+
+:data:`FILTERS` is the one list of filter names: ``"forward"`` is the forward run (the filter loop with the
+update switched off), ``"ekf"`` Eqs. 13-17, ``"enkf"`` the stochastic EnKF. :class:`AssimilationConfig`
+adds the sensing settings of a batched evaluation run (noise level, sensor count, noise seed, split) to a
+:class:`FilterConfig`, without re-declaring its fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..dataset import SPLITS
+from ..filters import EKF, EnKF, LatentDynamics
+from ..filters.common import check_covariance_spec
+from ..filters.enkf import Localization
+from ..names import FILTERS
+
+INITIAL_CONDITIONS = ("approximate", "exact")
+DIVERGENCE_POLICIES = ("raise", "reset")
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """How to filter (defaults: SPEC section 4), checked when built.
+
+    ``kind``: one of :data:`FILTERS`. ``initial``: "approximate" (mean encoded first frame of the training
+    trajectories) or "exact" (the encoded true first frame). ``P0``, ``Q``: initial and process-noise
+    covariances (a variance times I, or a (B,), (r, r) or (B, r, r) tensor); R = sigma^2 I comes from the
+    env. EnKF: ``n_members``, ``inflation`` (multiplicative, 1 = none), ``localization`` (a hook
+    ``(C_zy, C_yy) -> (C_zy, C_yy)``, e.g. :func:`~dks_gym.filters.schur_localization`).
+    ``on_divergence``: "raise" stops at a non-finite estimate, "reset" restarts the diverged elements.
+    ``seed``: seeds the EnKF's draws when the caller gives none.
+    """
+
+    kind: str = "ekf"
+    initial: str = "approximate"
+    P0: float | torch.Tensor = 1.0
+    Q: float | torch.Tensor = 1e-4
+    n_members: int = 20
+    inflation: float = 1.0
+    localization: Localization | None = None
+    on_divergence: str = "raise"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.kind not in FILTERS:
+            hint = " (the forward run is called 'forward')" if self.kind == "none" else ""
+            raise ValueError(f"unknown filter {self.kind!r}{hint}; choose one of {', '.join(FILTERS)}")
+        if self.initial not in INITIAL_CONDITIONS:
+            raise ValueError(f"unknown initial condition {self.initial!r}; choose 'approximate' or 'exact'")
+        check_covariance_spec(self.P0, "P0", definite=True)
+        check_covariance_spec(self.Q, "Q", definite=False)
+        n = self.n_members
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 2:
+            raise ValueError(f"n_members must be an integer >= 2 (an ensemble needs two members "
+                             f"for a covariance), got {n!r}")
+        inflation = self.inflation
+        if isinstance(inflation, bool) or not isinstance(inflation, numbers.Real) \
+                or not (1.0 <= float(inflation) < float("inf")):
+            raise ValueError(f"inflation must be a finite factor >= 1 (1.0 = none), got {inflation!r}")
+        if self.localization is not None and not callable(self.localization):
+            raise ValueError("localization must be a callable (C_zy, C_yy) -> (C_zy, C_yy), "
+                             "e.g. dks_gym.filters.schur_localization(rho)")
+        if self.on_divergence not in DIVERGENCE_POLICIES:
+            raise ValueError(f"on_divergence must be 'raise' or 'reset', got {self.on_divergence!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral):
+            raise ValueError(f"seed must be an integer, got {self.seed!r}")
+
+    @property
+    def assimilates(self) -> bool:
+        """False for the forward run."""
+        return self.kind != "forward"
+
+    def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int) -> EKF | EnKF:
+        """The filter object (the forward run is the EKF loop stepped with the update off)."""
+        if self.kind == "enkf":
+            return EnKF(dynamics, sigma=sigma, Q=self.Q, n_members=self.n_members, inflation=self.inflation,
+                        localization=self.localization, generator=seed, on_divergence=self.on_divergence)
+        return EKF(dynamics, sigma=sigma, Q=self.Q, on_divergence=self.on_divergence)
+
+
+@dataclass(frozen=True)
+class AssimilationConfig:
+    """An evaluation run's settings: a :class:`FilterConfig` plus how the episodes are sensed.
+
+    ``filter``: the filter settings (default: the paper's EKF, restarting diverged trajectories);
+    ``noise_level``: sigma as a fraction of max |observed channel|; ``n_sensors``: sensors per layout;
+    ``noise_seed``: seed of the measurement noise, shared by every model and filter; ``split``: the
+    dataset split the episodes come from.
+    """
+
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(on_divergence="reset"))
+    noise_level: float = 0.2
+    n_sensors: int = 16
+    noise_seed: int = 0
+    split: str = "test"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.filter, FilterConfig):
+            raise TypeError(f"AssimilationConfig.filter must be a FilterConfig, got {type(self.filter).__name__}; "
+                            "use config.replace(kind='enkf', ...) to change a filter setting")
+        if not (np.isfinite(self.noise_level) and self.noise_level > 0):
+            raise ValueError(
+                f"noise_level must be a positive fraction of the observed channel's maximum (e.g. 0.2), "
+                f"got {self.noise_level!r}"
+            )
+        if int(self.n_sensors) != self.n_sensors or self.n_sensors < 1:
+            raise ValueError(f"n_sensors must be a positive integer, got {self.n_sensors!r}")
+        if self.split not in SPLITS:
+            raise ValueError(f"unknown split {self.split!r}; choose 'train' or 'test'")
+
+    def replace(self, **changes: Any) -> "AssimilationConfig":
+        """A copy with fields of this config or of its :class:`FilterConfig` changed (``kind="enkf"``, ``noise_level=0.1``)."""
+        own = {f.name for f in dataclasses.fields(self)} - {"filter"}
+        filter_fields = {f.name for f in dataclasses.fields(FilterConfig)}
+        unknown = set(changes) - own - filter_fields - {"filter"}
+        if unknown:
+            raise TypeError(f"unknown setting(s) {', '.join(sorted(unknown))}; AssimilationConfig has "
+                            f"{', '.join(sorted(own))} and FilterConfig has {', '.join(sorted(filter_fields))}")
+        filter_config = changes.pop("filter", self.filter)
+        nested = {k: changes.pop(k) for k in list(changes) if k in filter_fields}
+        if nested:
+            filter_config = dataclasses.replace(filter_config, **nested)
+        return dataclasses.replace(self, filter=filter_config, **changes)
+
+    def as_record(self) -> dict[str, Any]:
+        """The flat, JSON-ready settings stored in results files (the filter's kind under ``"filter"``)."""
+        f = self.filter
+        return {"filter": f.kind, "initial": f.initial, "noise_level": self.noise_level, "n_members": f.n_members,
+                "n_sensors": self.n_sensors, "P0": _plain(f.P0), "Q": _plain(f.Q), "noise_seed": self.noise_seed,
+                "filter_seed": f.seed, "split": self.split, "on_divergence": f.on_divergence}
+
+
+def _plain(value: float | torch.Tensor) -> Any:
+    return value.tolist() if isinstance(value, torch.Tensor) else value

@@ -1,0 +1,197 @@
+"""The batched assimilation core: one latent model, one filter, B sensing episodes, one step at a time.
+
+:class:`Assimilation` is the only place where a filter meets a model: it builds the filter for the
+current episodes of B ``SensingEnv`` objects (their mu, noise sigma, sensors and initial condition),
+and each :meth:`Assimilation.step` forecasts, updates with the readings, decodes and scores (Eqs. 13-18).
+The wrappers call it once per env step; :func:`~dks_gym.assimilation.run_episodes` calls it over whole
+episodes. Its filter state is private: callers see snapshots and the belief.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from ..dataset import Dataset
+from ..envs.sensing import SensingEnv
+from ..filters import EKF, EnKF, LatentDynamics, bind_param
+from ..models import MODEL_KINDS, load_model, model_device
+from .config import FilterConfig
+
+# Per model, per dataset file: the approximate initial latent state (it costs one pass over the train split).
+_APPROXIMATE_CACHE: "weakref.WeakKeyDictionary[Any, dict[str, torch.Tensor]]" = weakref.WeakKeyDictionary()
+
+
+def approximate_initial_latent(model: Any, dataset: Dataset) -> torch.Tensor:
+    """z0 = mean over the training trajectories of their encoded first frames (SPEC section 4), (r,).
+
+    For pDMD the encoding is the POD projection, so this is the mean of their POD coefficients.
+    """
+    per_model = _APPROXIMATE_CACHE.setdefault(model, {})
+    key = str(Path(dataset.path).resolve())
+    if key not in per_model:
+        first = np.asarray(dataset.fields("train")[:, 0], dtype=np.float32)
+        mu = dataset.params("train")
+        with torch.no_grad():
+            z = torch.cat([model.encode(torch.from_numpy(first[i : i + 16]), torch.from_numpy(mu[i : i + 16]))
+                           for i in range(0, len(first), 16)])
+        per_model[key] = z.mean(0)
+    return per_model[key]
+
+
+def field_errors(estimate: torch.Tensor, truth: torch.Tensor, scored: tuple[int, ...],
+                 std: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. 18: MSE over the scored channels and all cells, per batch element; standardized when ``std`` is given."""
+    diff = (estimate[:, list(scored)] - truth[:, list(scored)]).flatten(2)
+    if std is not None:
+        diff = diff / std[list(scored)].to(diff)[None, :, None]
+    return diff.pow(2).mean(dim=(1, 2))
+
+
+def resolve_model(model: Any, benchmark: str, *, r: int | None, preset: str, T: int, device: str,
+                  train_if_missing: bool, dataset: Dataset | None = None) -> Any:
+    """A model object, or load the cached checkpoint named by ``model`` (one of :data:`MODEL_KINDS`).
+
+    ``r`` (default 32 for names) must match a given model object's latent dimension when it is passed.
+    ``dataset``: the environment's dataset; a named checkpoint is looked up (and trained, with
+    ``train_if_missing``) for that dataset's preset, and must have been trained on it.
+    """
+    if isinstance(model, str):
+        if model not in MODEL_KINDS:
+            raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODEL_KINDS)} or pass a model object")
+        model = load_model(benchmark, model, r=32 if r is None else r, preset=preset, T=T, device=device,
+                           dataset=dataset, train_if_missing=train_if_missing)
+    for attr in ("encode", "decode", "forecast", "filter_forecast_jacobian", "filter_observe_jacobian",
+                 "benchmark", "r", "kind"):
+        if not hasattr(model, attr):
+            raise TypeError(f"model must provide {attr!r} (see dks_gym.models.LatentModel), got {type(model).__name__}")
+    if model.benchmark != benchmark:
+        raise ValueError(f"the model was trained for {model.benchmark!r}, but the environment is {benchmark!r}")
+    if r is not None and model.r != r:
+        raise ValueError(f"the model has latent dimension r={model.r}, but r={r} was asked for")
+    return model
+
+
+@dataclass
+class Snapshot:
+    """The decoded estimate after a start or a step, with its Eq. 18 scores, per batch element."""
+
+    estimate: torch.Tensor  # (B, C, *grid) decoded filter mean, physical units
+    mse: np.ndarray  # (B,) physical units
+    normalized_mse: np.ndarray  # (B,) over standardized channels
+    latent_mean: np.ndarray  # (B, r)
+    diagnostics: dict[str, np.ndarray] = field(default_factory=dict)  # gain_norm, spread, (EKF) forecast_norm
+
+
+class _SensorRows:
+    """The layouts h(z) reads, (B, m), updated every step so that chosen layouts are followed."""
+
+    def __init__(self) -> None:
+        self.current = np.zeros((1, 1), dtype=np.int64)
+
+    def __call__(self, n_rows: int) -> np.ndarray:
+        """Sensor indices of ``n_rows`` stacked rows (row j belongs to element j // (n_rows // B))."""
+        return self.current.repeat(n_rows // len(self.current), axis=0)
+
+
+class Assimilation:
+    """One latent model and one batched filter following B sensing episodes (the B = 1 case is a wrapper)."""
+
+    def __init__(self, model: Any, config: FilterConfig, *, device: str | torch.device | None = None,
+                 dtype: torch.dtype = torch.float32) -> None:
+        self.model = model
+        self.config = config
+        self.device = model_device(model) if device is None else torch.device(device)
+        self.dtype = dtype
+        self._sensors = _SensorRows()
+        self._filter: EKF | EnKF | None = None
+        self._mu: torch.Tensor | None = None
+
+    @property
+    def filter(self) -> EKF | EnKF | None:
+        """The running filter (read it for ``.mean``, ``.cov``, ``.diagnostics``; the core alone steps it)."""
+        return self._filter
+
+    def _dynamics(self, channel: str) -> LatentDynamics:
+        """The model as the filters see it: mu bound, h(z) = S(decode(z)) at each element's current sensors."""
+        model, mu, rows = self.model, self._mu, self._sensors
+        c = model.shape.channels.index(channel)
+
+        def observe(z: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+            fields = model.decode(z, m).flatten(2)[:, c]
+            return fields.gather(1, torch.as_tensor(rows(z.shape[0]), device=fields.device))
+
+        return LatentDynamics(bind_param(model.forecast, mu), bind_param(observe, mu),
+                              forecast_jacobian=model.filter_forecast_jacobian(mu),
+                              observe_jacobian=model.filter_observe_jacobian(rows, channel))
+
+    def start(self, envs: Sequence[SensingEnv], seed: int, sensors: np.ndarray | None = None) -> Snapshot:
+        """A fresh filter for the envs' current episodes (call right after resetting them).
+
+        ``sensors`` (B, m): the layouts the filter reads, when they are not the envs' own.
+        """
+        self._mu = torch.tensor([e.mu for e in envs], dtype=self.dtype, device=self.device)
+        self._sensors.current = np.stack([e.sensors for e in envs]) if sensors is None else np.asarray(sensors)
+        # A noise-free env (noise_level=0) still needs a positive R for the gain to exist.
+        sigma = torch.tensor([max(e.sigma, 1e-12) for e in envs], dtype=self.dtype, device=self.device)
+        self._filter = self.config.make(self._dynamics(envs[0].benchmark.observed_channel), sigma, seed)
+        if self.config.initial == "exact":
+            with torch.no_grad():
+                z0 = self.model.encode(self._truth(envs), self._mu)
+        else:
+            z0 = approximate_initial_latent(self.model, envs[0].dataset).expand(len(envs), -1)
+        self._filter.reset(z0.to(self.device, self.dtype).clone(), self.config.P0)
+        return self._snapshot(envs)
+
+    def step(self, envs: Sequence[SensingEnv], readings: np.ndarray, sensors: np.ndarray) -> Snapshot:
+        """Forecast (Eqs. 13-14), update with ``readings`` (B, m) taken at ``sensors`` (B, m) unless this is
+        the forward run (Eqs. 15-17), decode the mean and score it against the envs' truth (Eq. 18)."""
+        if self._filter is None:
+            raise RuntimeError("call reset() before step()")
+        self._sensors.current = np.asarray(sensors)
+        y = torch.as_tensor(np.asarray(readings), dtype=self.dtype, device=self.device)
+        self._filter.step(y, assimilate=self.config.assimilates)
+        return self._snapshot(envs, with_diagnostics=True)
+
+    def _truth(self, envs: Sequence[SensingEnv]) -> torch.Tensor:
+        return torch.as_tensor(np.stack([e.true_state for e in envs]), dtype=self.dtype, device=self.device)
+
+    def _snapshot(self, envs: Sequence[SensingEnv], with_diagnostics: bool = False) -> Snapshot:
+        with torch.no_grad():
+            estimate = self.model.decode(self._filter.mean.detach(), self._mu)
+        truth = self._truth(envs).to(estimate)
+        bench = envs[0].benchmark
+        std = torch.as_tensor(envs[0].dataset.stats_std, device=estimate.device)
+        snap = Snapshot(estimate=estimate,
+                        mse=field_errors(estimate, truth, bench.scored_indices).cpu().numpy(),
+                        normalized_mse=field_errors(estimate, truth, bench.scored_indices, std).cpu().numpy(),
+                        latent_mean=self._filter.mean.detach().cpu().numpy())
+        if with_diagnostics:
+            d = self._filter.diagnostics
+            snap.diagnostics = {"gain_norm": d.gain_norm[-1].cpu().numpy(), "spread": d.spread[-1].cpu().numpy()}
+            if isinstance(self._filter, EKF):  # the EnKF uses no forecast Jacobian
+                snap.diagnostics["forecast_norm"] = d.forecast_norm[-1].cpu().numpy()
+        return snap
+
+    def truth(self, envs: Sequence[SensingEnv]) -> np.ndarray:
+        """The envs' true fields (B, C, *grid) as the core scores them, float32."""
+        return self._truth(envs).cpu().numpy().astype(np.float32)
+
+    def belief(self) -> np.ndarray:
+        """[mean z; log diag P] per element, (B, 2r) float32."""
+        var = self._filter.cov.diagonal(dim1=-2, dim2=-1).clamp_min(1e-30)
+        return torch.cat([self._filter.mean, var.log()], dim=1).detach().cpu().numpy().astype(np.float32)
+
+    def history(self) -> dict[str, np.ndarray | None]:
+        """Over the steps so far: ``forecast_norm`` (n, B) (None for the EnKF), ``step_seconds`` (n,), and
+        ``divergence_resets`` (B,), how many times each element was restarted."""
+        d = self._filter.diagnostics
+        return {"forecast_norm": d.stacked("forecast_norm").cpu().double().numpy()
+                if isinstance(self._filter, EKF) else None,
+                "step_seconds": np.asarray(d.wall_time, dtype=np.float64),
+                "divergence_resets": d.stacked("reset").sum(0).cpu().numpy().astype(np.int64)}

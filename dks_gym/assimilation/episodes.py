@@ -1,0 +1,268 @@
+"""The one loop that runs a latent filter over whole sensing episodes, and its result.
+
+:func:`run_episodes` steps B episodes (``SensingEnv`` objects, already reset) from frame 0 to the last
+frame through one :class:`~dks_gym.assimilation.core.Assimilation`: the filter starts at frame 0 from the
+initial latent state (no update with the frame-0 reading), and every later frame is a forecast followed,
+unless it is the forward run, by an update with that frame's readings. The sensors come from one of:
+
+* the envs' own layouts (default; ``sensor_mode="fixed"`` envs);
+* ``layouts`` (B, m): a fixed layout per episode, read from envs whose sensors hold every cell of it
+  (several episodes may share one env object: it is stepped once per frame and read at each layout);
+* ``decide(belief (B, 2r)) -> actions (B, m)``: a layout chosen every step (``sensor_mode="select"`` envs).
+
+:func:`run_assimilation` runs it over the trajectories of a dataset split (paper Section IV); the
+placement harness (``dks_gym_agents.scoring``) over (layout, trajectory) pairs and adaptive policies.
+Per episode and frame it records the Eq. 18 MSE of the decoded mean (frame 0 is the initial estimate),
+the forecast Jacobian norm ``||F_k||_2`` of each step (EKF and forward run) and the wall time of each
+batched filter step (CUDA synchronized).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from ..dataset import Dataset
+from ..envs.sensing import SensingEnv
+from .config import AssimilationConfig
+from .core import Assimilation
+
+
+@dataclass
+class AssimilationResult:
+    """Everything one batched run measured; per-episode arrays are ordered like ``trajectories``."""
+
+    model: str  # the model's kind
+    r: int
+    config: AssimilationConfig
+    trajectories: np.ndarray  # (B,) indices into the split
+    params: np.ndarray  # (B,) physical parameter of each trajectory
+    step_mse: np.ndarray  # (B, n_t) Eq. 18 at every frame, physical units; frame 0 = initial estimate
+    forecast_norm: np.ndarray | None  # (n_t - 1, B) ||F_k||_2 per step; None for the EnKF (no Jacobian)
+    step_seconds: np.ndarray  # (n_t - 1,) wall time of each batched filter step
+    divergence_resets: np.ndarray  # (B,) how many times each trajectory was restarted
+    final_estimate: np.ndarray  # (B, C, *grid) decoded mean at the final frame, physical units
+    final_truth: np.ndarray  # (B, C, *grid)
+    wall_time: float  # seconds for the whole run (readings, filter, decoding, errors)
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def final_mse(self) -> np.ndarray:
+        """(B,) final-time MSE per trajectory."""
+        return self.step_mse[:, -1]
+
+    @property
+    def final_mse_mean(self) -> float:
+        return float(np.mean(self.final_mse))
+
+    @property
+    def final_mse_std(self) -> float:
+        """Sample standard deviation across trajectories (NaN for a single trajectory)."""
+        return float(np.std(self.final_mse, ddof=1)) if len(self.final_mse) > 1 else float("nan")
+
+    @property
+    def per_step_mse_mean(self) -> np.ndarray:
+        """(n_t,) MSE at every frame averaged over trajectories."""
+        return self.step_mse.mean(axis=0)
+
+    @property
+    def max_forecast_norm(self) -> np.ndarray | None:
+        """(B,) max_k ||F_k||_2 per trajectory (the paper's operator-norm table); None for the EnKF."""
+        return None if self.forecast_norm is None else self.forecast_norm.max(axis=0)
+
+    @property
+    def da_step_seconds(self) -> float:
+        """Mean wall time of one filter step of the whole batch."""
+        return float(np.mean(self.step_seconds))
+
+    @property
+    def batch(self) -> int:
+        return len(self.trajectories)
+
+
+def episode_envs(dataset: Dataset, trajectories: np.ndarray, noise_seeds: np.ndarray, *, split: str,
+                 noise_level: float, share: bool = False, **env_kwargs: Any) -> list[SensingEnv]:
+    """One SensingEnv per episode (trajectory of ``split``, noise seed), reset to it.
+
+    ``share=True``: episodes with the same (trajectory, noise seed) get the same env object, so a fixed
+    layout per episode can be read from one env holding the union of the layouts. ``env_kwargs`` go to
+    :class:`~dks_gym.envs.SensingEnv` (``sensors``, ``n_sensors``, ``sensor_mode``, ``candidates``).
+    """
+    made: dict[tuple[int, int], SensingEnv] = {}
+    envs = []
+    for t, s in zip(np.asarray(trajectories).reshape(-1), np.asarray(noise_seeds).reshape(-1)):
+        key = (int(t), int(s))
+        if not share or key not in made:
+            env = SensingEnv(dataset.benchmark, preset=dataset.preset or "paper", data_path=str(dataset.path),
+                             split=split, noise_level=noise_level, **env_kwargs)
+            env.reset(options={"trajectory": key[0], "noise_seed": key[1]})
+            made[key] = env
+            envs.append(env)
+        else:
+            envs.append(made[key])
+    return envs
+
+
+def close_envs(envs: Sequence[SensingEnv]) -> None:
+    """Close each distinct env once."""
+    for env in {id(e): e for e in envs}.values():
+        env.close()
+
+
+def _distinct(envs: Sequence[SensingEnv]) -> tuple[list[SensingEnv], np.ndarray]:
+    """The distinct env objects and, per episode, the index of its env among them."""
+    index: dict[int, int] = {}
+    readers: list[SensingEnv] = []
+    which = []
+    for env in envs:
+        if id(env) not in index:
+            index[id(env)] = len(readers)
+            readers.append(env)
+        which.append(index[id(env)])
+    return readers, np.asarray(which, dtype=np.int64)
+
+
+def _layout_positions(readers: list[SensingEnv], which: np.ndarray, layouts: np.ndarray) -> np.ndarray:
+    """Where each episode's sensor reading sits in its env's readings, (B, m)."""
+    if layouts.ndim != 2 or layouts.shape[0] != len(which):
+        raise ValueError(f"layouts must be (B, m) with one row per episode ({len(which)}), got {layouts.shape}")
+    positions = np.empty_like(layouts)
+    for b, i in enumerate(which):
+        read = np.asarray(readers[i].sensors)
+        order = np.argsort(read)
+        pos = np.searchsorted(read, layouts[b], sorter=order)
+        pos = order[np.minimum(pos, len(read) - 1)]
+        if not np.array_equal(read[pos], layouts[b]):
+            raise ValueError(f"episode {b}'s layout has cells its env does not read; build the env with "
+                             "sensors= holding every cell of the layouts (see episode_envs(share=True))")
+        positions[b] = pos
+    return positions
+
+
+def run_episodes(
+    model: Any,
+    envs: Sequence[SensingEnv],
+    config: AssimilationConfig,
+    *,
+    layouts: np.ndarray | None = None,
+    decide: Callable[[np.ndarray], np.ndarray] | None = None,
+    dtype: torch.dtype = torch.float32,
+    progress: bool = False,
+    description: str | None = None,
+) -> AssimilationResult:
+    """Filter B reset episodes ``envs`` to their last frame with ``config.filter`` as one batch.
+
+    ``layouts`` or ``decide`` (at most one) say which sensors the filter reads (see the module docstring).
+    ``extras`` of the result: ``layouts`` (the fixed layouts, or (B, n_t - 1, m) the layouts read at frames
+    1..n_t-1 with ``decide``) and, with ``decide``, ``decision_seconds`` (n_t - 1,).
+    """
+    from tqdm.auto import tqdm
+
+    if layouts is not None and decide is not None:
+        raise ValueError("give layouts (fixed per episode) or decide (chosen per step), not both")
+    start = time.perf_counter()
+    readers, which = _distinct(envs)
+    if decide is not None and len(readers) != len(envs):
+        raise ValueError("with decide, every episode needs an env of its own")
+    if layouts is not None:
+        layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
+        positions = _layout_positions(readers, which, layouts)
+    n_t = envs[0].dataset.n_frames
+    if n_t < 2:
+        raise ValueError(f"{envs[0].dataset.path} has {n_t} frame(s); assimilation needs at least 2")
+    core = Assimilation(model, config.filter, dtype=dtype)
+    snap = core.start(envs, seed=config.filter.seed, sensors=layouts)
+    batch = len(envs)
+    step_mse = np.empty((batch, n_t), dtype=np.float64)
+    step_mse[:, 0] = snap.mse
+    extras: dict[str, Any] = {}
+    if decide is not None:
+        chosen = np.empty((batch, n_t - 1, envs[0].n_sensors), dtype=np.int64)
+        decision_seconds = np.empty(n_t - 1)
+    bar = tqdm(range(1, n_t), desc=description or f"{model.kind} {config.filter.kind}", unit="step", leave=False,
+               disable=not progress, dynamic_ncols=True)
+    for k in bar:
+        if decide is not None:
+            tic = time.perf_counter()
+            actions = np.asarray(decide(core.belief()))
+            decision_seconds[k - 1] = time.perf_counter() - tic
+            steps = [env.step(a) for env, a in zip(envs, actions)]
+            readings = np.stack([s[0] for s in steps])
+            sensors = chosen[:, k - 1] = np.stack([s[4]["sensors"] for s in steps])
+        else:
+            steps = [env.step(None) for env in readers]
+            if layouts is None:
+                readings = np.stack([steps[i][0] for i in which])
+                sensors = np.stack([steps[i][4]["sensors"] for i in which])
+            else:
+                readings = np.stack([s[0] for s in steps])[which[:, None], positions]
+                sensors = layouts
+        snap = core.step(envs, readings, sensors)
+        step_mse[:, k] = snap.mse
+    bar.close()
+    if decide is not None:
+        extras = {"layouts": chosen, "decision_seconds": decision_seconds}
+    elif layouts is not None:
+        extras = {"layouts": layouts}
+    history = core.history()
+    return AssimilationResult(
+        model=model.kind, r=int(model.r), config=config,
+        trajectories=np.array([e.trajectory for e in envs], dtype=np.int64),
+        params=np.array([e.mu for e in envs], dtype=np.float64), step_mse=step_mse,
+        forecast_norm=history["forecast_norm"], step_seconds=history["step_seconds"],
+        divergence_resets=history["divergence_resets"],
+        final_estimate=snap.estimate.cpu().numpy().astype(np.float32), final_truth=core.truth(envs),
+        wall_time=time.perf_counter() - start, extras=extras,
+    )
+
+
+def _open(dataset: Dataset | str | Path) -> Dataset:
+    return dataset if isinstance(dataset, Dataset) else Dataset(dataset)
+
+
+def run_assimilation(
+    model: Any,
+    dataset: Dataset | str | Path,
+    config: AssimilationConfig | None = None,
+    *,
+    trajectories: list[int] | np.ndarray | None = None,
+    dtype: torch.dtype = torch.float32,
+    progress: bool = False,
+    description: str | None = None,
+    **overrides: Any,
+) -> AssimilationResult:
+    """Run ``config.filter`` for ``model`` over the trajectories of ``dataset``'s split as one batch.
+
+    Every model and filter reads the same noise realization (SPEC section 2, keyed by ``noise_seed``).
+    ``model`` is a trained latent model (see :mod:`dks_gym.models`) on the device to run on;
+    ``trajectories`` defaults to the whole split; keyword ``overrides`` change settings of ``config`` or
+    of its filter (e.g. ``kind="enkf", n_members=40``).
+    """
+    config = config or AssimilationConfig()
+    if overrides:
+        config = config.replace(**overrides)
+    ds = _open(dataset)
+    bench = ds.benchmark
+    if getattr(model, "benchmark", None) != bench.name:
+        raise ValueError(f"the model is for {getattr(model, 'benchmark', None)!r} but the dataset is {bench.name!r}")
+    n_split = ds.n_trajectories(config.split)
+    index = np.arange(n_split) if trajectories is None else np.asarray(trajectories, dtype=np.int64)
+    if index.ndim != 1 or index.size == 0 or index.min() < 0 or index.max() >= n_split:
+        raise ValueError(
+            f"trajectories must be a non-empty list of indices in [0, {n_split}) of the {config.split!r} split, "
+            f"got {trajectories!r}"
+        )
+    start = time.perf_counter()
+    envs = episode_envs(ds, index, np.full(len(index), config.noise_seed), split=config.split,
+                        noise_level=config.noise_level, n_sensors=config.n_sensors)
+    try:
+        result = run_episodes(model, envs, config, dtype=dtype, progress=progress, description=description)
+    finally:
+        close_envs(envs)
+    result.wall_time = time.perf_counter() - start
+    return result

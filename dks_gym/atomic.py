@@ -1,0 +1,52 @@
+"""Atomic file writing: a file appears complete under its name, or not at all.
+
+Every writer of dks-gym (datasets, results, checkpoints, the OpenFOAM case files and run cache) writes
+to a temporary name beside the target, flushes it to disk and renames it into place, so a crash, an
+error or Ctrl-C in the middle never leaves a truncated file that looks valid. The temporary name is
+``.<name>.tmp-<pid>-<random>`` (hidden, unique per process and call; ``*.h5.tmp*`` in .gitignore).
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+
+def temporary_name(target: str | Path, suffix: str = "") -> Path:
+    """A fresh temporary path beside ``target``: ``.<name>.tmp-<pid>-<8 hex digits><suffix>``."""
+    target = Path(target)
+    return target.with_name(f".{target.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}{suffix}")
+
+
+@contextmanager
+def atomic_path(target: str | Path, suffix: str = "") -> Iterator[Path]:
+    """Yield a temporary path beside ``target`` to write; on success move it onto ``target`` atomically.
+
+    The body writes the file at the yielded path (with any library: h5py, numpy, safetensors, plain
+    ``open``) and closes it. On leaving normally the file is fsynced and renamed over ``target``
+    (``os.replace``, atomic on POSIX and Windows). On any exception, KeyboardInterrupt included, the
+    temporary file is removed and ``target`` is left as it was. ``suffix`` ends the temporary name, for
+    writers that insist on an extension (``np.savez`` appends ``.npz`` otherwise).
+    """
+    target = Path(target)
+    tmp = temporary_name(target, suffix)
+    try:
+        yield tmp
+        # Data first, then the rename: after a power cut the target holds the old or the new file, never
+        # a renamed but empty one.
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def atomic_write_text(target: str | Path, text: str) -> Path:
+    """Write ``text`` to ``target`` atomically (see :func:`atomic_path`); return ``target`` as a Path."""
+    target = Path(target)
+    with atomic_path(target) as tmp:
+        tmp.write_text(text)
+    return target
