@@ -1,12 +1,12 @@
 """Sensor-placement policies for dks-gym and the harness that ranks them with a latent filter in the loop.
 
-* :mod:`agents.policies`: the interface (:class:`PlacementTask`, :class:`StaticPolicy`, :class:`AdaptivePolicy`);
-* :mod:`agents.baselines`: paper layout, seeded random layouts, QR pivoting on POD modes (PySensors), greedy;
-* :mod:`agents.sequential`: placement as an MDP (place m sensors one by one), PPO;
-* :mod:`agents.adaptive`: adaptive sensing, PPO on the filter's belief (``sensor_mode="select"``);
-* :mod:`agents.scoring`: batched filter runs of many layouts, the linearized covariance objective;
-* :mod:`agents.evaluate`: :func:`evaluate_placement`, the ranked table, figure and results JSON;
-* :mod:`agents.cli`: the ``dks-gym evaluate-placement`` click command.
+* :mod:`dks_gym_agents.policies`: the interface (:class:`PlacementTask`, :class:`StaticPolicy`, :class:`AdaptivePolicy`);
+* :mod:`dks_gym_agents.baselines`: paper layout, seeded random layouts, QR pivoting on POD modes (PySensors), greedy;
+* :mod:`dks_gym_agents.sequential`: placement as an MDP (place m sensors one by one), PPO;
+* :mod:`dks_gym_agents.adaptive`: adaptive sensing, PPO on the filter's belief (``sensor_mode="select"``);
+* :mod:`dks_gym_agents.scoring`: batched filter runs of many layouts, the linearized covariance objective;
+* :mod:`dks_gym_agents.evaluate`: :func:`evaluate_placement`, the ranked table, figure and results JSON;
+* :mod:`dks_gym_agents.cli`: the ``dks-gym evaluate-placement`` click command.
 """
 
 from .baselines import GreedyLayout, PaperLayout, QRLayout, RandomLayout

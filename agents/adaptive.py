@@ -4,14 +4,14 @@ The environment is the package's batched :class:`~dks_gym.wrappers.LatentFilterV
 split in select mode over a candidate set, adapted to stable-baselines3 by
 :func:`~dks_gym.wrappers.SB3VecEnv`. Observation: the filter's belief ``[latent mean (r); log diag P (r)]``;
 action: m candidate indices (``MultiDiscrete([n_candidates] * m)``; repeated picks move to the nearest free
-candidate, as in :meth:`~agents.policies.AdaptivePolicy.decide`, so training and evaluation read the same
+candidate, as in :meth:`~dks_gym_agents.policies.AdaptivePolicy.decide`, so training and evaluation read the same
 cells); reward: minus the reconstruction MSE of the step divided by the mean forward-run MSE of the training
 trajectories (about -1 per step for a filter no better than the open-loop model).
 
 Training script (defaults: 32 candidates, 8 environments, 20,480 steps, about 2-4 minutes on one CPU core for
 the lite Burgers model)::
 
-    python -m agents.adaptive burgers --timesteps 20480 --out docs/results/placement/burgers/agents
+    python -m dks_gym_agents.adaptive burgers --timesteps 20480 --out docs/results/placement/burgers/agents
 """
 
 from __future__ import annotations

@@ -164,7 +164,7 @@ class GreedyLayout(StaticPolicy):
     filter runs with the task's filter settings on the training split (its own noise realization).
     ``objective="trace"``: the time-averaged trace of the EKF analysis covariance linearized along the
     encoded training trajectories, as the variance of the decoded scored field
-    (:func:`~agents.scoring.covariance_traces`, ``space="field"``); it can only fall as sensors are added.
+    (:func:`~dks_gym_agents.scoring.covariance_traces`, ``space="field"``); it can only fall as sensors are added.
     Candidates: ``candidates`` or a lattice of about ``n_candidates`` allowed cells; trajectories:
     ``n_trajectories`` spread over the training parameters. ``history`` holds the best objective after
     each round, ``scores`` every candidate's score per round. ``max_batch`` caps the (layout, trajectory)

@@ -35,9 +35,9 @@ from .evaluate import POLICIES
               help="Training trajectories the greedy objective averages over (default: 4 for 'greedy', 10 for "
                    "'greedy-trace').")
 @click.option("--sequential", "sequential_ckpt", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Checkpoint (.zip) of 'sequential' (python -m agents.sequential); trained when absent.")
+              help="Checkpoint (.zip) of 'sequential' (python -m dks_gym_agents.sequential); trained when absent.")
 @click.option("--ppo", "ppo_ckpt", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Checkpoint (.zip) of 'ppo' (python -m agents.adaptive); trained when absent.")
+              help="Checkpoint (.zip) of 'ppo' (python -m dks_gym_agents.adaptive); trained when absent.")
 @click.option("--agent-timesteps", type=click.IntRange(min=1), default=None,
               help="Training steps of learned policies trained here (default: each trainer's).")
 @click.option("--device", default="cpu", show_default=True)

@@ -2,7 +2,7 @@
 
 :func:`evaluate_placement` (and ``dks-gym evaluate-placement``) fits each policy on the training split,
 then filters every test trajectory with its layouts as one batch (static policies: one layout per episode,
-:func:`~agents.scoring.run_layouts`; adaptive ones: a layout per step, :func:`~agents.scoring.run_adaptive`).
+:func:`~dks_gym_agents.scoring.run_layouts`; adaptive ones: a layout per step, :func:`~dks_gym_agents.scoring.run_adaptive`).
 The measurement noise depends only on (noise seed, split, trajectory, frame, cell), so every policy is
 judged on the same noise realization, and a cell read by two policies reads the same value.
 
@@ -254,7 +254,7 @@ def add_paired_vs_random(doc: dict[str, Any]) -> dict[str, Any]:
 
 def rewrite_tables(folder: str | Path) -> Path:
     """Recompute ``paired_vs_random`` and ``placement.md`` of a finished run from its ``placement.json``
-    (no filter runs): ``python -c "from agents.evaluate import rewrite_tables; rewrite_tables('DIR')"``."""
+    (no filter runs): ``python -c "from dks_gym_agents.evaluate import rewrite_tables; rewrite_tables('DIR')"``."""
     from dks_gym.evaluation.results import load_results
 
     folder = Path(folder)

@@ -2,7 +2,7 @@
 
 A placement policy decides where the m sensors of a :class:`~dks_gym.envs.SensingEnv` read. It learns
 only from a :class:`PlacementTask`: the benchmark, the dataset's *training* split, the latent model and
-the filter settings it will be judged with. The evaluation harness (:mod:`agents.evaluate`) then runs
+the filter settings it will be judged with. The evaluation harness (:mod:`dks_gym_agents.evaluate`) then runs
 it on the test split.
 
 * :class:`StaticPolicy`: ``fit(task)`` chooses a layout from the training data; ``episode_layouts(mus)``

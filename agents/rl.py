@@ -115,7 +115,7 @@ def load_agent(path: str | Path, task: Any, kind: str, device: str = "cpu") -> t
     meta_path = path.with_suffix(".json")
     if not path.exists() or not meta_path.exists():
         raise FileNotFoundError(f"no agent checkpoint at {path} (with {meta_path.name}); train one first "
-                                f"(python -m agents.{kind} BENCHMARK --out DIR)")
+                                f"(python -m dks_gym_agents.{kind} BENCHMARK --out DIR)")
     meta = json.loads(meta_path.read_text())
     if meta.get("kind") != kind:
         raise ValueError(f"{path} holds a {meta.get('kind')!r} agent, not a {kind!r} one")

@@ -212,7 +212,8 @@ def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: 
     r = lin.F.shape[-1]
     batch = n_layouts * n_traj
     zeros = torch.zeros(batch, r, dtype=lin.J.dtype, device=lin.J.device)
-    state = GaussianState(zeros, config.filter.P0 * torch.eye(r, dtype=lin.J.dtype, device=lin.J.device).expand(batch, r, r))
+    eye = torch.eye(r, dtype=lin.J.dtype, device=lin.J.device)
+    state = GaussianState(zeros, config.filter.P0 * eye.expand(batch, r, r))
     R = lin.sigma[which] ** 2
     y = torch.zeros(batch, layouts.shape[1], dtype=lin.J.dtype, device=lin.J.device)
     traces = []

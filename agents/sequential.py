@@ -10,13 +10,13 @@ from the layout, not from how hard the trajectory is; ``reference="forward"`` di
 error instead).
 
 :class:`SequentialPlacementVecEnv` runs N episodes in lockstep and scores their N layouts with one batched
-filter (:func:`~agents.scoring.run_layouts`), caching scores of layouts seen before.
+filter (:func:`~dks_gym_agents.scoring.run_layouts`), caching scores of layouts seen before.
 :class:`SequentialLayout` is the resulting static policy: the trained agent's deterministic rollout.
 
 Training script (defaults: 32 candidates, 16 parallel episodes, 16,384 steps = 1024 episodes, a few minutes
 on one CPU core for the lite Burgers model)::
 
-    python -m agents.sequential burgers --timesteps 16384 --out docs/results/placement/burgers/agents
+    python -m dks_gym_agents.sequential burgers --timesteps 16384 --out docs/results/placement/burgers/agents
 """
 
 from __future__ import annotations

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import importlib
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -12,7 +14,61 @@ from .benchmarks import BENCHMARKS, PRESETS, GeneratorUnavailable
 from .names import MODEL_KINDS
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def _plugin_commands() -> dict[str, Any]:
+    """Commands other installed packages add through the ``dks_gym.commands`` entry-point group."""
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group="dks_gym.commands")}
+
+
+class _LazyGroup(click.Group):
+    """The dks-gym group: commands defined in later layers (evaluation, the agents package) are imported only
+    when invoked, so ``dks-gym --help`` and ``dks-gym data ...`` start without torch."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted({*super().list_commands(ctx), *LAZY_COMMANDS, *_plugin_commands()})
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name in self.commands:
+            return self.commands[name]
+        if name in LAZY_COMMANDS:
+            module, attr = LAZY_COMMANDS[name][0].split(":")
+            command = getattr(importlib.import_module(module), attr)
+        elif name in (plugins := _plugin_commands()):
+            command = plugins[name].load()
+        else:
+            return None
+        self.add_command(command, name)
+        return command
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The command list, with the short help of lazy commands taken from :data:`LAZY_COMMANDS`."""
+        plugins = _plugin_commands()
+        rows = []
+        for name in self.list_commands(ctx):
+            if name in self.commands:
+                rows.append((name, self.commands[name].get_short_help_str(limit=formatter.width - 6 - len(name))))
+            elif name in LAZY_COMMANDS:
+                rows.append((name, LAZY_COMMANDS[name][1]))
+            else:
+                rows.append((name, f"from {plugins[name].value.split('.')[0]}; see dks-gym {name} --help"))
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
+
+#: Commands of the evaluation layer: where each is defined and its one-line help (a test keeps them equal).
+LAZY_COMMANDS = {
+    "compare": ("dks_gym.evaluation.commands:compare_command",
+                "Print the ratios B / A of final MSE, operator norm and DA-step time for the runs in..."),
+    "demo": ("dks_gym.evaluation.commands:demo_command",
+             "Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a..."),
+    "reproduce": ("dks_gym.evaluation.commands:reproduce_command",
+                  "Run the paper's Section IV experiments on BENCHMARK; write results.json, tables.md and..."),
+}
+
+
+@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="dks-gym")
 def main() -> None:
     """dks-gym: Gymnasium environments for sparse flow sensing (Deep Koopman Sensing)."""
@@ -199,20 +255,6 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
                 f"reconstruction {err['reconstruction_mse']:.3e})"
             )
 
-
-def _register_commands() -> None:
-    from .evaluation.commands import COMMANDS
-
-    for command in COMMANDS:
-        main.add_command(command)
-    try:  # the top-level agents/ package ships beside dks_gym; registered here so one console script serves both
-        from agents.cli import evaluate_placement_command
-    except ImportError:  # pragma: no cover - dks_gym used without the agents package
-        return
-    main.add_command(evaluate_placement_command)
-
-
-_register_commands()
 
 if __name__ == "__main__":  # pragma: no cover
     main()

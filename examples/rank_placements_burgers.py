@@ -2,8 +2,8 @@
 layouts, QR pivoting on POD modes (PySensors) and a custom policy, all under the same noise."""
 import numpy as np
 
-from agents import PlacementTask, StaticPolicy
-from agents.evaluate import evaluate_placement
+from dks_gym_agents import PlacementTask, StaticPolicy
+from dks_gym_agents.evaluate import evaluate_placement
 
 
 class LeftHalf(StaticPolicy):

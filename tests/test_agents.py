@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import dks_gym  # noqa: F401
-from agents.baselines import GreedyLayout, PaperLayout, QRLayout, RandomLayout, observed_snapshots
-from agents.policies import PlacementTask, candidate_lattice, check_layout, distinct_picks
-from agents.scoring import LinearizedTrajectories, covariance_traces, run_layouts
+from dks_gym_agents.baselines import GreedyLayout, PaperLayout, QRLayout, RandomLayout, observed_snapshots
+from dks_gym_agents.policies import PlacementTask, candidate_lattice, check_layout, distinct_picks
+from dks_gym_agents.scoring import LinearizedTrajectories, covariance_traces, run_layouts
 from dks_gym.dataset import Dataset, write_dataset
 from dks_gym.assimilation import AssimilationConfig
 from dks_gym.models import build_model
@@ -76,9 +76,9 @@ def test_every_policy_gives_valid_layouts(bench: str, burgers_task, cfd_tasks) -
     """m distinct fluid cells from every policy on every benchmark (static ones once, adaptive ones every step)."""
     from stable_baselines3 import PPO
 
-    from agents.adaptive import PPOAdaptive, make_adaptive_env
-    from agents.evaluate import evaluate_policy
-    from agents.sequential import LayoutScorer, SequentialLayout, SequentialPlacementVecEnv
+    from dks_gym_agents.adaptive import PPOAdaptive, make_adaptive_env
+    from dks_gym_agents.evaluate import evaluate_policy
+    from dks_gym_agents.sequential import LayoutScorer, SequentialLayout, SequentialPlacementVecEnv
 
     task = _task(bench, burgers_task, cfd_tasks)
     task = dataclasses.replace(task, config=AssimilationConfig(n_sensors=4))
@@ -160,11 +160,11 @@ def test_greedy_trace_falls_monotonically_and_matches_a_numpy_riccati(burgers_ta
     ours = covariance_traces(lin, layout[None], cfg)[0]  # (T, n_t - 1)
     pos = np.searchsorted(lin.cells, layout)
     for t in range(len(lin.trajectories)):
-        P = cfg.P0 * np.eye(task.model.r)
+        P = cfg.filter.P0 * np.eye(task.model.r)
         R = float(lin.sigma[t]) ** 2 * np.eye(len(layout))
         for k in range(1, lin.J.shape[1]):
             F, J, M = lin.F[t, k - 1].numpy(), lin.J[t, k][pos].numpy(), lin.M[t, k].numpy()
-            P = F @ P @ F.T + cfg.Q * np.eye(task.model.r)
+            P = F @ P @ F.T + cfg.filter.Q * np.eye(task.model.r)
             K = P @ J.T @ np.linalg.inv(J @ P @ J.T + R)
             P = (np.eye(task.model.r) - K @ J) @ P
             assert ours[t, k - 1] == pytest.approx(np.trace(M @ P), rel=1e-6)
@@ -215,8 +215,8 @@ def test_distinct_picks_moves_repeats_to_the_nearest_free_index() -> None:
 def test_ppo_smoke_sequential_and_adaptive_with_checkpoints(burgers_task: PlacementTask, tmp_path: Path) -> None:
     """A few hundred PPO steps of each learner run, save checkpoint, metadata and learning curve, and reload
     to the same decisions; a checkpoint refuses a task with another sensor count."""
-    from agents.adaptive import PPOAdaptive, train_adaptive
-    from agents.sequential import SequentialLayout, train_sequential
+    from dks_gym_agents.adaptive import PPOAdaptive, train_adaptive
+    from dks_gym_agents.sequential import SequentialLayout, train_sequential
 
     task = dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=4))
     agent, meta = train_sequential(task, timesteps=64, n_envs=4, n_candidates=16, seed=0, out=tmp_path,
@@ -243,8 +243,8 @@ def test_evaluate_placement_writes_a_ranked_valid_results_file(burgers_task, tmp
     equals a LatentFilter run, and draws the layout figure."""
     from click.testing import CliRunner
 
-    from agents.cli import evaluate_placement_command
-    from agents.policies import PlacementTask as Task
+    from dks_gym_agents.cli import evaluate_placement_command
+    from dks_gym_agents.policies import PlacementTask as Task
     from dks_gym.evaluation.results import load_results
 
     captured = {}
@@ -284,7 +284,7 @@ def test_evaluate_placement_writes_a_ranked_valid_results_file(burgers_task, tmp
 
 
 def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
-    from agents.evaluate import make_policies
+    from dks_gym_agents.evaluate import make_policies
 
     cyl = cfd_tasks["cylinder"]
     body = np.flatnonzero(~cyl.fluid_mask.ravel())[:3]
@@ -307,11 +307,11 @@ def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
 @pytest.mark.parametrize("kind", ["sequential", "adaptive"])
 def test_trainer_command_lines_write_checkpoint_and_curve(kind: str, burgers_task, tmp_path: Path, monkeypatch,
                                                           capsys) -> None:
-    """`python -m agents.sequential|adaptive BENCHMARK --out DIR` trains and writes the checkpoint, its metadata
+    """`python -m dks_gym_agents.sequential|adaptive BENCHMARK --out DIR` trains and writes the checkpoint, its metadata
     and the learning-curve figure, with the options passed through to the task."""
     import importlib
 
-    from agents.policies import PlacementTask as Task
+    from dks_gym_agents.policies import PlacementTask as Task
 
     captured = {}
 
@@ -320,7 +320,7 @@ def test_trainer_command_lines_write_checkpoint_and_curve(kind: str, burgers_tas
         return dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=kwargs["n_sensors"]))
 
     monkeypatch.setattr(Task, "load", classmethod(fake_load))
-    module = importlib.import_module(f"agents.{kind}")
+    module = importlib.import_module(f"dks_gym_agents.{kind}")
     steps = ["--timesteps", "64", "--n-envs", "16"] if kind == "sequential" else ["--timesteps", "256", "--n-envs", "2"]
     with pytest.raises(SystemExit) as exit_info:
         module.main(["burgers", "--n-sensors", "4", "--n-candidates", "16", "--seed", "3", *steps,
@@ -336,8 +336,8 @@ def test_trainer_command_lines_write_checkpoint_and_curve(kind: str, burgers_tas
 def test_custom_policy_objects_are_ranked_beside_named_ones(burgers_task, tmp_path: Path) -> None:
     """evaluate_placement takes the user's own StaticPolicy next to the built-in names and runs its layout;
     duplicate names and unknown names are refused."""
-    from agents import StaticPolicy
-    from agents.evaluate import evaluate_placement, make_policies
+    from dks_gym_agents import StaticPolicy
+    from dks_gym_agents.evaluate import evaluate_placement, make_policies
 
     class Clustered(StaticPolicy):
         name = "clustered"
@@ -359,7 +359,7 @@ def test_custom_policy_objects_are_ranked_beside_named_ones(burgers_task, tmp_pa
 def test_paired_vs_random_from_a_results_document(tmp_path: Path) -> None:
     """The paired comparison with the random layouts: per-episode log ratio to the random mean (the other
     seeds' for a random row), its standard error, the geometric variant and the wins, from JSON alone."""
-    from agents.evaluate import paired_vs_random, ranked_table
+    from dks_gym_agents.evaluate import paired_vs_random, ranked_table
 
     def rec(policy, values, trajectories=(0, 1, 0, 1)):
         return {"experiment": f"placement/{policy}", "policy": policy, "per_trajectory_time_mean_mse": list(values),
@@ -403,7 +403,7 @@ def test_m16_layouts_on_cfd_geometries_and_their_figure(bench: str, cfd_tasks_m1
     """The paper's m = 16 on the cylinder, dambreak and sphere grids: every static baseline gives 16 distinct
     fluid cells (never the cylinder, obstacle or sphere), the harness ranks them, and the 2D/3D layout
     figure (3D: mid-plane) is drawn."""
-    from agents.evaluate import evaluate_placement
+    from dks_gym_agents.evaluate import evaluate_placement
 
     task = cfd_tasks_m16[bench]
     fluid = task.fluid_mask.ravel()

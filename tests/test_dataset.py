@@ -12,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 from filelock import FileLock
 
+from dks_gym.atomic import atomic_path, atomic_write_text
 from dks_gym.benchmarks import GeneratedData
 from dks_gym.cli import main
 from dks_gym.dataset import Dataset, DatasetMissing, SchemaError, load_dataset, write_dataset
@@ -156,6 +157,22 @@ def test_failed_or_interrupted_write_leaves_nothing(tmp_path: Path, exc: BaseExc
         write_dataset(_failing(synthetic_data("burgers", n_train=3), exc), "burgers", target)
     assert not target.exists()
     assert [p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")] == []
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("writer failed"), KeyboardInterrupt()])
+def test_atomic_path_keeps_the_old_file_until_the_new_one_is_complete(tmp_path: Path, exc: BaseException) -> None:
+    """The helper every writer uses (datasets, results, checkpoints, OpenFOAM files): the target keeps its old
+    content through a failed or interrupted write, the temporary file beside it goes, a success replaces it."""
+    target = atomic_write_text(tmp_path / "run.npz", "old")
+    with pytest.raises(type(exc)), atomic_path(target, suffix=".npz") as tmp:
+        assert tmp.parent == tmp_path and tmp.name.startswith(".run.npz.tmp-") and tmp.suffix == ".npz"
+        tmp.write_text("half")
+        raise exc
+    assert [p.name for p in tmp_path.iterdir()] == ["run.npz"] and target.read_text() == "old"
+    with atomic_path(target, suffix=".npz") as tmp:
+        np.savez(tmp, x=np.arange(3))  # np.savez appends .npz to a name without it: the suffix keeps the name
+    assert [p.name for p in tmp_path.iterdir()] == ["run.npz"]
+    np.testing.assert_array_equal(np.load(target)["x"], np.arange(3))
 
 
 def test_bad_generator_output_is_refused(tmp_path: Path) -> None:

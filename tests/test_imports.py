@@ -72,10 +72,16 @@ def stage_of(module: str) -> str | None:
     return parts[1] if parts[1] in STAGES else TOP_LEVEL_STAGES.get(parts[1], "utilities")
 
 
+def _canonical(module: str) -> str:
+    """``module`` under the folder's name: ``dks_gym_agents.x`` (the installed name) is ``agents.x``."""
+    head, dot, rest = module.partition(".")
+    return "agents" + dot + rest if head == "dks_gym_agents" else module
+
+
 def _resolve(module: str, is_package: bool, node: ast.ImportFrom) -> str:
     """The absolute module a ``from`` import names (relative levels resolved against ``module``)."""
     if node.level == 0:
-        return node.module or ""
+        return _canonical(node.module or "")
     package = module.split(".") if is_package else module.split(".")[:-1]
     base = package[: len(package) - (node.level - 1)]
     return ".".join(base + ([node.module] if node.module else []))
@@ -94,7 +100,7 @@ def import_edges(modules: dict[str, Path], repo: Path) -> list[Edge]:
         rel = str(path.relative_to(repo))
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
-                targets = [alias.name for alias in node.names]
+                targets = [_canonical(alias.name) for alias in node.names]
             elif isinstance(node, ast.ImportFrom):
                 base = _resolve(module, path.name == "__init__.py", node)
                 # `from pkg import name`: an edge to pkg.name where that is a module, to pkg otherwise.
@@ -249,7 +255,8 @@ def test_checker_catches_a_lazy_back_import_and_its_cycle(tmp_path: Path) -> Non
         ({"dks_gym/__init__.py": "from .models import checkpoint\n"}, "root imports models at import time"),
         ({"dks_gym/dataset.py": "import dks_gym.envs\n"}, "dataset imports the later stage envs"),
         ({"dks_gym/cli.py": "", "dks_gym/home.py": "from dks_gym.cli import main\n"}, "utilities imports the later"),
-        ({"agents/scoring.py": "from dks_gym_agents.cli import x\nfrom dks_gym.cli import main\n"}, "agents imports the later stage cli"),
+        ({"agents/cli.py": "", "agents/scoring.py": "from dks_gym_agents.cli import x\nfrom dks_gym.cli import main\n"},
+         "agents imports the later stage cli"),
     ],
 )  # fmt: skip
 def test_checker_catches_each_kind_of_violation(tmp_path: Path, files: dict[str, str], expected: str) -> None:
@@ -270,3 +277,15 @@ def test_checker_catches_a_cycle_within_one_stage(tmp_path: Path) -> None:
         "(dks_gym.models.latent_model -> dks_gym.models.pdmd); dks_gym/models/pdmd.py:1 "
         "(dks_gym.models.pdmd -> dks_gym.models.latent_model)"
     ]
+
+
+def test_checker_sees_the_agents_under_their_installed_name(tmp_path: Path) -> None:
+    """``dks_gym_agents.x`` is the module of ``agents/x.py``: a cycle through the installed name is found."""
+    repo = _write(tmp_path, {
+        "dks_gym/__init__.py": "",
+        "agents/__init__.py": "",
+        "agents/policies.py": "from .scoring import score\n",
+        "agents/scoring.py": "def score():\n    from dks_gym_agents.policies import P\n",
+    })  # fmt: skip
+    found = check(repo)
+    assert len(found) == 1 and found[0].startswith("cycle agents.policies <-> agents.scoring"), found

@@ -26,6 +26,7 @@ import math
 
 import numpy as np
 
+from .cylinder import CELL_TYPE_CODES, MAX_SENSORS, NEAR_WAKE_LENGTH, RADIUS, WAKE_OFFSET
 from .layout import (
     CellGridBenchmark,
     check_layout,
@@ -37,16 +38,11 @@ from .layout import (
     surface_mask,
 )
 
-RADIUS = 1.0
+# The body radius, cell-type codes and sensor-count limit are the cylinder's, and so is the near wake:
+# wake sensors sit in R < x <= R + NEAR_WAKE_LENGTH on the lines nearest y, z = +-WAKE_OFFSET (units of
+# R), so the two benchmarks read alike.
 EXTENT = ((-8.0, 16.0), (-4.0, 4.0), (-4.0, 4.0))
-CELL_TYPE_CODES = {"interior": 0, "wall": 1, "body": 2, "inlet": 3, "outlet": 4}
-# Wake sensors sit in R < x <= R + NEAR_WAKE_LENGTH on the lines nearest y, z = +-WAKE_OFFSET (units of R),
-# the same near wake as the cylinder's so the two benchmarks read alike.
-NEAR_WAKE_LENGTH = 4.0
-WAKE_OFFSET = 0.5
 BLOCKAGE = math.pi * RADIUS**2 / ((EXTENT[1][1] - EXTENT[1][0]) * (EXTENT[2][1] - EXTENT[2][0]))
-# The layout rule is defined up to twice the paper's 16 sensors; pass explicit indices for more.
-MAX_SENSORS = 32
 
 
 class SphereBenchmark(CellGridBenchmark):

@@ -326,19 +326,29 @@ def _constant_jacobian(J: Tensor, batch: int, rows: int, r: int, like: Tensor, w
     return _check_output(J, (batch, rows, r), what)
 
 
+def _with_jacobian(
+    fn: Map, spec: JacobianSpec, z: Tensor, method: JacobianMethod, what: str, rows: int | None
+) -> tuple[Tensor, Tensor]:
+    """``fn(z)`` and its Jacobian at ``z`` ``(B, rows, r)``: from ``spec`` where the dynamics supply one (a
+    tensor, or a callable of ``z``), by autodiff otherwise. ``rows`` None takes the row count from ``fn(z)``
+    (the measurement count), falling back to the Jacobian's own when ``fn(z)`` is not ``(B, m)``."""
+    batch, r = z.shape
+    if spec is None:
+        return value_and_jacobian(fn, z, method)
+    with torch.no_grad():
+        out = fn(z)
+        J = spec if isinstance(spec, Tensor) else spec(z)
+    if rows is None:
+        rows = out.shape[-1] if out.ndim == 2 else -1
+    return out, _constant_jacobian(J, batch, rows, r, z, what)
+
+
 def forecast_with_jacobian(
     dynamics: LatentDynamics, z: Tensor, method: JacobianMethod = "auto"
 ) -> tuple[Tensor, Tensor]:
     """``f(z)`` ``(B, r)`` and ``F = df/dz`` at ``z`` ``(B, r, r)`` (Eq. 14), however the dynamics supply it."""
     batch, r = z.shape
-    spec = dynamics.forecast_jacobian
-    if spec is None:
-        z_next, F = value_and_jacobian(dynamics.forecast, z, method)
-    else:
-        with torch.no_grad():
-            z_next = dynamics.forecast(z)
-            F = spec if isinstance(spec, Tensor) else spec(z)
-        F = _constant_jacobian(F, batch, r, r, z, "forecast_jacobian")
+    z_next, F = _with_jacobian(dynamics.forecast, dynamics.forecast_jacobian, z, method, "forecast_jacobian", r)
     return _check_output(z_next, (batch, r), "forecast"), F
 
 
@@ -346,17 +356,9 @@ def observe_with_jacobian(
     dynamics: LatentDynamics, z: Tensor, method: JacobianMethod = "auto"
 ) -> tuple[Tensor, Tensor]:
     """``h(z)`` ``(B, m)`` and ``J = dh/dz`` at ``z`` ``(B, m, r)`` (Eqs. 15-16)."""
-    batch, r = z.shape
-    spec = dynamics.observe_jacobian
-    if spec is None:
-        y, J = value_and_jacobian(dynamics.observe, z, method)
-    else:
-        with torch.no_grad():
-            y = dynamics.observe(z)
-            J = spec if isinstance(spec, Tensor) else spec(z)
-        J = _constant_jacobian(J, batch, y.shape[-1] if y.ndim == 2 else -1, r, z, "observe_jacobian")
-    if y.ndim != 2 or y.shape[0] != batch:
-        raise ValueError(f"observe returned shape {tuple(y.shape)}, expected (B, m) with B = {batch}")
+    y, J = _with_jacobian(dynamics.observe, dynamics.observe_jacobian, z, method, "observe_jacobian", None)
+    if y.ndim != 2 or y.shape[0] != z.shape[0]:
+        raise ValueError(f"observe returned shape {tuple(y.shape)}, expected (B, m) with B = {z.shape[0]}")
     return y, J
 
 

@@ -147,12 +147,17 @@ def render(template: str, **values: str) -> str:
 
 
 def block_mesh_dict(
-    vertices: Sequence[str], blocks: Sequence[str], edges: Sequence[str], patches: Mapping[str, tuple[str, Sequence[str]]]
+    vertices: Sequence[str],
+    blocks: Sequence[str],
+    edges: Sequence[str],
+    patches: Mapping[str, tuple[str, Sequence[str]]],
 ) -> str:
     """``system/blockMeshDict`` from its entry lines: vertices, blocks, curved edges (may be empty) and
     ``{patch: (type, face lines)}`` in the order they are written; the front and back are one empty patch."""
     boundary = "\n".join(
-        f"    {name}\n    {{\n        type {kind};\n        faces\n        (\n" + "\n".join(faces) + "\n        );\n    }"
+        f"    {name}\n    {{\n        type {kind};\n        faces\n        (\n"
+        + "\n".join(faces)
+        + "\n        );\n    }"
         for name, (kind, faces) in patches.items()
     )
     # The template's edge list ends right after the placeholder, so no edges leave no blank line.
