@@ -53,7 +53,7 @@ def _sweep(preset: str, data_path: Path | None, workdir: Path, workers: int = 1)
         ds = Dataset(data_path)
         splits = ("train", "test")
         return {s: ds.params(s) for s in splits}, {s: ds.extras(s) for s in splits}, ds.time, ds.trajectory
-    data = dc.generate_dambreak(preset, workdir=workdir, workers=workers, progress=True)
+    data = dc.generate_dambreak(get_benchmark("dambreak"), preset, workdir=workdir, workers=workers, progress=True)
 
     def fields(split: str, index: int) -> np.ndarray:  # one use: the trajectories are a stream
         return next(f for s, i, f in data.trajectories if (s, i) == (split, index))

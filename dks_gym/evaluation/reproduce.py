@@ -397,7 +397,8 @@ def tables_markdown(doc: dict[str, Any]) -> str:
         f"over the {cfg.get('n_test')} test trajectories: mean ± sample std. m = {cfg.get('n_sensors')} sensors "
         f"on `{cfg.get('observed_channel')}`, Q = {cfg.get('Q')} I, P0 = {cfg.get('P0')} I, noise seed "
         f"{cfg.get('noise_seed')}; r = 32, T = 1, 20% noise, approximate initial condition unless stated. "
-        f"Data: `{doc['dataset'].get('path')}` (preset {doc['dataset'].get('preset')}). Created "
+        f"Data: `{Path(str(doc['dataset'].get('path'))).name}` (preset {doc['dataset'].get('preset')}, sha256 "
+        f"fingerprint {str(doc['dataset'].get('fingerprint'))[:12]}). Created "
         f"{cfg.get('created')} on {cfg.get('device')} with dks-gym {cfg.get('dks_gym_version')}."),
     ]
     if bench != "burgers":

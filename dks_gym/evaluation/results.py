@@ -115,9 +115,11 @@ def new_results(benchmark: str, preset: str, dataset: dict[str, Any], config: di
         "schema_version": SCHEMA_VERSION,
         "benchmark": benchmark,
         "preset": preset,
-        "dataset": dict(dataset),
+        # File names, not paths: a results file is shared and committed, and the fingerprint identifies the data.
+        "dataset": {**dataset, "path": Path(str(dataset.get("path", ""))).name},
         "config": dict(config),
-        "models": list(models),
+        "models": [{**m, "checkpoint": Path(str(m["checkpoint"])).name} if m.get("checkpoint") else dict(m)
+                   for m in models],
         "records": list(records),
     }
     validate(doc)
