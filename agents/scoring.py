@@ -15,13 +15,12 @@
 
 from __future__ import annotations
 
-import time
 from typing import Any, Callable
 
 import numpy as np
 import torch
 
-from dks_gym.assimilation import AssimilationConfig, AssimilationResult, close_envs, episode_envs, run_episodes
+from dks_gym.assimilation import AssimilationConfig, AssimilationResult, run_dataset
 from dks_gym.dataset import Dataset
 from dks_gym.envs.noise import noise_sigma
 from dks_gym.filters import GaussianState, LatentDynamics, ekf_forecast, ekf_update
@@ -46,7 +45,6 @@ def run_layouts(model: Any, dataset: Dataset, layouts: np.ndarray, trajectories:
     :class:`~dks_gym.assimilation.AssimilationResult` whose ``step_mse`` is (B, n_t) (frame 0 is the initial
     estimate, the same for every layout) and ``extras["layouts"]`` the layouts.
     """
-    start = time.perf_counter()
     split = split or config.split
     layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
     trajectories = np.asarray(trajectories, dtype=np.int64).reshape(-1)
@@ -59,14 +57,9 @@ def run_layouts(model: Any, dataset: Dataset, layouts: np.ndarray, trajectories:
     seeds = _episode_seeds(config, len(trajectories), noise_seeds)
     # One env per (trajectory, seed) reads the union of all layouts' cells: each pair sees exactly the noise
     # the environments give that cell, which depends on (noise seed, split, trajectory, frame, cell) only.
-    envs = episode_envs(dataset, trajectories, seeds, split=split, noise_level=config.noise_level, share=True,
-                        sensors=np.unique(layouts))
-    try:
-        result = run_episodes(model, envs, config, layouts=layouts, dtype=dtype)
-    finally:
-        close_envs(envs)
+    result = run_dataset(model, dataset, trajectories, seeds, config, split=split, share=True, layouts=layouts,
+                         dtype=dtype, sensors=np.unique(layouts))
     result.extras["noise_seeds"] = seeds
-    result.wall_time = time.perf_counter() - start  # including the envs' set-up
     return result
 
 
@@ -93,18 +86,12 @@ def run_adaptive(model: Any, dataset: Dataset, decide: Callable[[np.ndarray], np
     :func:`run_layouts`. ``extras`` holds ``layouts`` (B, n_t - 1, m) flat grid indices read at frames
     1..n_t-1 and ``decision_seconds`` (n_t - 1,), the wall time of each batched decision.
     """
-    start = time.perf_counter()
     trajectories = np.asarray(trajectories, dtype=np.int64).reshape(-1)
     seeds = _episode_seeds(config, len(trajectories), noise_seeds)
-    envs = episode_envs(dataset, trajectories, seeds, split=config.split, noise_level=config.noise_level,
-                        n_sensors=config.n_sensors, sensor_mode="select",
-                        candidates=np.asarray(candidates, dtype=np.int64))
-    try:
-        result = run_episodes(model, envs, config, decide=decide, dtype=dtype)
-    finally:
-        close_envs(envs)
+    result = run_dataset(model, dataset, trajectories, seeds, config, decide=decide, dtype=dtype,
+                         n_sensors=config.n_sensors, sensor_mode="select",
+                         candidates=np.asarray(candidates, dtype=np.int64))
     result.extras["noise_seeds"] = seeds
-    result.wall_time = time.perf_counter() - start  # including the envs' set-up
     return result
 
 

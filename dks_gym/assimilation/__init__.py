@@ -9,7 +9,7 @@
 
 from .config import DIVERGENCE_POLICIES, FILTERS, INITIAL_CONDITIONS, AssimilationConfig, FilterConfig
 from .core import Assimilation, Snapshot, approximate_initial_latent, field_errors, resolve_model
-from .episodes import AssimilationResult, close_envs, episode_envs, run_assimilation, run_episodes
+from .episodes import AssimilationResult, close_envs, episode_envs, run_assimilation, run_dataset, run_episodes
 
 __all__ = [
     "DIVERGENCE_POLICIES",
@@ -26,5 +26,6 @@ __all__ = [
     "field_errors",
     "resolve_model",
     "run_assimilation",
+    "run_dataset",
     "run_episodes",
 ]

@@ -257,11 +257,23 @@ def run_assimilation(
             f"trajectories must be a non-empty list of indices in [0, {n_split}) of the {config.split!r} split, "
             f"got {trajectories!r}"
         )
+    return run_dataset(model, ds, index, np.full(len(index), config.noise_seed), config, dtype=dtype,
+                       progress=progress, description=description, n_sensors=config.n_sensors)
+
+
+def run_dataset(model: Any, dataset: Dataset, trajectories: np.ndarray, noise_seeds: np.ndarray,
+                config: AssimilationConfig, *, split: str | None = None, share: bool = False,
+                layouts: np.ndarray | None = None, decide: Callable[[np.ndarray], np.ndarray] | None = None,
+                dtype: torch.dtype = torch.float32, progress: bool = False, description: str | None = None,
+                **env_kwargs: Any) -> AssimilationResult:
+    """:func:`run_episodes` over episodes (trajectory, noise seed) of ``split`` (default ``config.split``):
+    builds their envs (:func:`episode_envs`), runs them and closes them; ``wall_time`` includes the set-up."""
     start = time.perf_counter()
-    envs = episode_envs(ds, index, np.full(len(index), config.noise_seed), split=config.split,
-                        noise_level=config.noise_level, n_sensors=config.n_sensors)
+    envs = episode_envs(dataset, trajectories, noise_seeds, split=split or config.split,
+                        noise_level=config.noise_level, share=share, **env_kwargs)
     try:
-        result = run_episodes(model, envs, config, dtype=dtype, progress=progress, description=description)
+        result = run_episodes(model, envs, config, layouts=layouts, decide=decide, dtype=dtype, progress=progress,
+                              description=description)
     finally:
         close_envs(envs)
     result.wall_time = time.perf_counter() - start
