@@ -25,16 +25,7 @@ import numpy as np
 
 from .baselines import PaperLayout
 from .policies import AdaptivePolicy, PlacementTask, candidate_lattice, distinct_picks
-from .rl import (
-    learning_curve_callback,
-    load_agent,
-    model_identity,
-    offline_seconds,
-    quiet_logger,
-    save_agent,
-    save_learning_curve,
-    trainer_command,
-)
+from .rl import learn_ppo, load_agent, offline_seconds, record_ppo_run, trainer_command
 from .scoring import forward_reference, run_layouts
 
 
@@ -81,8 +72,6 @@ def train_adaptive(task: PlacementTask, *, timesteps: int = 20480, n_envs: int =
     the dashed line is the paper layout's mean return on the training trajectories with the same filter.
     PPO defaults: n_steps 128 per env, batch 256, 5 epochs, learning rate 3e-4, gamma 0.99.
     """
-    from stable_baselines3 import PPO
-
     start = time.perf_counter()
     cands = candidate_lattice(task, n_candidates) if candidates is None else np.asarray(candidates, dtype=np.int64)
     PlacementTask(task.dataset, task.model, task.config, candidates=cands)  # validates them
@@ -92,29 +81,17 @@ def train_adaptive(task: PlacementTask, *, timesteps: int = 20480, n_envs: int =
     kwargs = dict(n_steps=128, batch_size=256, n_epochs=5, learning_rate=3e-4, gamma=0.99, seed=seed,
                   device="cpu", verbose=0)
     kwargs.update(ppo_kwargs or {})
-    agent = PPO("MlpPolicy", env, **kwargs)
-    agent.set_logger(quiet_logger())
-    curve = learning_curve_callback()
-    agent.learn(total_timesteps=int(timesteps), callback=curve, progress_bar=progress)
+    agent, curve = learn_ppo(env, kwargs, timesteps, progress)
     wall = time.perf_counter() - start
     # Reference: the paper layout's episode return on every training trajectory with the same filter.
     n_train = task.dataset.n_trajectories("train")
     paper = run_layouts(task.model, task.dataset, np.repeat(PaperLayout().fit(task).layout[None], n_train, 0),
                         np.arange(n_train), task.config, split="train")
     paper_return = -float(paper.step_mse[:, 1:].sum(axis=1).mean() * reward_scale)
-    meta = {
-        "kind": "adaptive", "identity": model_identity(task), "candidates": cands.tolist(), "n_envs": n_envs,
-        "timesteps": int(agent.num_timesteps), "seed": seed, "reward_scale": reward_scale,
-        "ppo": {k: v for k, v in kwargs.items() if k not in ("device", "verbose")}, "train_seconds": wall,
-        "learning_curve": curve.as_dict(), "paper_layout_return": paper_return,
-    }
-    if out is not None:
-        out = Path(out)
-        save_agent(agent, out / "adaptive.zip", meta)
-        save_learning_curve(curve.as_dict(), out / "adaptive_curve.png",
-                            f"adaptive sensing (PPO), {task.benchmark.name} ({task.model.kind} {task.config.filter.kind}, "
-                            f"m={task.n_sensors}, {len(cands)} candidates)",
-                            {"paper layout (all training trajectories)": paper_return})
+    title = (f"adaptive sensing (PPO), {task.benchmark.name} ({task.model.kind} {task.config.filter.kind}, "
+             f"m={task.n_sensors}, {len(cands)} candidates)")
+    meta = record_ppo_run(agent, curve, task, kind="adaptive", candidates=cands, ppo_kwargs=kwargs, train_seconds=wall,
+                          paper_return=paper_return, out=out, title=title, n_envs=n_envs, reward_scale=reward_scale)
     return agent, meta
 
 

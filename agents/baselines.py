@@ -8,7 +8,8 @@ paper       the benchmark's geometric rule, O(m); no data.
 random      one seeded draw without replacement, O(n); no data.
 qr          POD of the observed channel on the training split, O(N n min(N, n)) for the Gram matrix and
             its eigendecomposition, then QR with column pivoting on the r x n mode matrix, O(n r^2)
-            (PySensors ``SSPOR`` with ``QR``, or ``CCQR`` with a cost map that forbids solid cells).
+            (scipy's pivoted QR, or cost-constrained QR with a cost map that forbids solid cells,
+            O(n r m); both pick the sensors PySensors' ``QR`` / ``CCQR`` pick, which the tests check).
             Seconds on every benchmark; no model, no filter.
 greedy      m rounds; round j scores each of the remaining n_c - j + 1 candidates added to the j - 1 chosen.
  "error"    runs the real filter for every (candidate, trajectory) pair: about m n_c T filter runs of n_t steps
@@ -26,6 +27,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from dks_gym.dataset import Dataset
 
@@ -100,14 +102,73 @@ def pod_modes(snapshots: np.ndarray, n_modes: int) -> tuple[np.ndarray, np.ndarr
     return U[:, :n_modes], np.sqrt(lam[:n_modes])
 
 
+def qr_pivots(basis: np.ndarray, n_pivots: int) -> np.ndarray:
+    """The first ``n_pivots`` cells (rows of ``basis``, (n, r)) chosen by QR with column pivoting of basis^T.
+
+    LAPACK's pivoted QR (geqp3) through scipy, called as PySensors' ``QR`` optimizer calls it; only the
+    first r pivots are ranked, so ``n_pivots <= r``.
+    """
+    n, r = basis.shape
+    if not 0 < n_pivots <= min(n, r):
+        raise ValueError(f"n_pivots must be in [1, {min(n, r)}] for a basis of shape {basis.shape}, got {n_pivots}")
+    # mode="r" skips forming Q; geqp3 runs the same, so the pivots are PySensors' (which forms Q).
+    _, pivots = scipy.linalg.qr(basis.conj().T, mode="r", pivoting=True)
+    return np.asarray(pivots[:n_pivots], dtype=np.int64)
+
+
+def ccqr_pivots(basis: np.ndarray, costs: np.ndarray, n_pivots: int) -> np.ndarray:
+    """The first ``n_pivots`` cells chosen by cost-constrained QR (Clark et al. 2018) on basis^T, (n, r).
+
+    Householder QR of R = basis^T whose pivot at step j is the remaining column maximizing
+    ||R[j:, i]|| - costs[i] instead of ||R[j:, i]||: with costs 0 it is plain greedy QR pivoting, and a
+    cost above every column norm (<= 1 for an orthonormal basis) keeps a cell out while any other is
+    left. The arithmetic is PySensors' ``CCQR`` step for step (same norms, reflector and update), so ties
+    and near-ties resolve the same way; the pivots are greedy, so stopping after ``n_pivots`` steps
+    changes none of them.
+    """
+    n, r = basis.shape
+    costs = np.asarray(costs, dtype=np.float64)
+    if costs.shape != (n,):
+        raise ValueError(f"costs must have shape ({n},) (one per cell), got {costs.shape}")
+    if not 0 < n_pivots <= min(n, r):
+        raise ValueError(f"n_pivots must be in [1, {min(n, r)}] for a basis of shape {basis.shape}, got {n_pivots}")
+    R = basis.conj().T.copy()  # (r, n): its columns are the candidate cells
+    p = np.arange(n)
+    for j in range(n_pivots):
+        sub = R[j:, j:]
+        norms = np.sqrt(np.sum(np.abs(sub) ** 2, axis=0))
+        i = int(np.argmax(norms - costs[p[j:]]))
+        zero_pivot = not norms[i] > 0
+        if zero_pivot:
+            # Every remaining allowed column is exactly zero (the basis is exhausted on the allowed
+            # cells). PySensors then takes the pivot column itself as u, a view into R, and sets its
+            # first entry to sqrt(2); the swap below moves that view's contents, so its update uses the
+            # column swapped in. Reproduced as is, so that even these arbitrary picks stay PySensors'.
+            sub[0, i] = np.sqrt(2)
+        else:
+            # Householder vector u with (I - u u^T) x = -sign(x_0) ||x|| e_0 for the pivot column x,
+            # scaled so that u^T u = 2 (PySensors' normalization, kept for identical rounding).
+            u = sub[:, i] / norms[i]
+            u[0] += np.sign(u[0]) + (u[0] == 0)
+            u /= np.sqrt(abs(u[0]))
+        p[[j, j + i]] = p[[j + i, j]]
+        R[:, [j, j + i]] = R[:, [j + i, j]]
+        if zero_pivot:
+            u = R[j:, j + i].copy()
+        R[j:, j:] -= np.outer(u, np.dot(u, R[j:, j:]))  # np.dot as PySensors writes it: the same BLAS call
+        R[j + 1 :, j] = 0
+    return p[:n_pivots].copy()
+
+
 class QRLayout(StaticPolicy):
-    """QR column pivoting on the POD basis of the observed channel (Manohar et al. 2018), through PySensors.
+    """QR column pivoting on the POD basis of the observed channel (Manohar et al. 2018).
 
     The basis is the leading ``n_modes`` (default m) POD modes of the mean-subtracted training snapshots
-    of the observed channel. ``optimizer="auto"`` uses ``ps.optimizers.QR`` when every cell is allowed
-    and ``ps.optimizers.CCQR`` with a cost map otherwise (solid cells, or cells outside ``candidates``,
-    cost ``FORBIDDEN_COST``, so they are never chosen); ``"ccqr"`` forces the latter. QR ranks only as
-    many sensors as there are modes, so ``n_modes >= m``.
+    of the observed channel. ``optimizer="auto"`` uses plain pivoted QR (:func:`qr_pivots`) when every
+    cell is allowed and cost-constrained QR (:func:`ccqr_pivots`) with a cost map otherwise (solid cells,
+    or cells outside ``candidates``, cost ``FORBIDDEN_COST``, so they are never chosen); ``"ccqr"`` forces
+    the latter. QR ranks only as many sensors as there are modes, so ``n_modes >= m``. The layouts equal
+    PySensors' ``SSPOR`` with its ``QR`` / ``CCQR`` optimizers (tests/test_agents.py checks both).
     """
 
     name = "qr"
@@ -122,8 +183,6 @@ class QRLayout(StaticPolicy):
         self.singular_values: np.ndarray | None = None
 
     def choose(self, task: PlacementTask) -> np.ndarray:
-        import pysensors as ps
-
         m = task.n_sensors
         r = m if self.n_modes is None else int(self.n_modes)
         if r < m:
@@ -137,11 +196,8 @@ class QRLayout(StaticPolicy):
         if self.optimizer == "qr" and constrained:
             raise ValueError("some cells are forbidden (solid or not candidates): use optimizer='ccqr' or 'auto'")
         use_ccqr = self.optimizer == "ccqr" or (self.optimizer == "auto" and constrained)
-        optimizer = ps.optimizers.CCQR(sensor_costs=costs) if use_ccqr else ps.optimizers.QR()
-        sspor = ps.SSPOR(basis=ps.basis.Custom(U=U, n_basis_modes=r), optimizer=optimizer, n_sensors=m)
-        sspor.fit(X, quiet=True, seed=task.seed)
         self.used_ccqr = use_ccqr
-        return np.asarray(sspor.get_selected_sensors(), dtype=np.int64)
+        return ccqr_pivots(U, costs, m) if use_ccqr else qr_pivots(U, m)
 
     def describe(self) -> dict[str, Any]:
         return dict(super().describe(), n_modes=self.n_modes, optimizer=self.optimizer,

@@ -91,6 +91,36 @@ def save_learning_curve(curve: dict[str, list], path: str | Path, title: str,
     return path
 
 
+def learn_ppo(env: Any, ppo_kwargs: dict[str, Any], timesteps: int, progress: bool) -> tuple[Any, Any]:
+    """Train an SB3 ``PPO("MlpPolicy")`` on ``env`` quietly; return (agent, its learning-curve callback)."""
+    PPO = _sb3().PPO
+    agent = PPO("MlpPolicy", env, **ppo_kwargs)
+    agent.set_logger(quiet_logger())
+    curve = learning_curve_callback()
+    agent.learn(total_timesteps=int(timesteps), callback=curve, progress_bar=progress)
+    return agent, curve
+
+
+def record_ppo_run(agent: Any, curve: Any, task: Any, *, kind: str, candidates: np.ndarray, ppo_kwargs: dict[str, Any],
+                   train_seconds: float, paper_return: float, out: str | Path | None, title: str,
+                   **extra: Any) -> dict[str, Any]:
+    """The metadata of a trained placement agent (``extra`` adds to it); with ``out``, also write
+    ``OUT/KIND.zip`` + ``.json`` and ``OUT/KIND_curve.png`` with the paper layout's return as a dashed line."""
+    meta = {
+        "kind": kind, "identity": model_identity(task), "candidates": np.asarray(candidates).tolist(),
+        "timesteps": int(agent.num_timesteps), "seed": ppo_kwargs.get("seed"),
+        "ppo": {k: v for k, v in ppo_kwargs.items() if k not in ("device", "verbose")},
+        "train_seconds": train_seconds, **extra,
+        "learning_curve": curve.as_dict(), "paper_layout_return": paper_return,
+    }
+    if out is not None:
+        out = Path(out)
+        save_agent(agent, out / f"{kind}.zip", meta)
+        save_learning_curve(curve.as_dict(), out / f"{kind}_curve.png", title,
+                            {"paper layout (all training trajectories)": paper_return})
+    return meta
+
+
 def model_identity(task: Any) -> dict[str, Any]:
     """What a learned policy was trained with: benchmark, latent model, dataset fingerprint, filter settings."""
     from dks_gym.models.checkpoint import dataset_identity

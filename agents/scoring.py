@@ -101,35 +101,17 @@ def decoder_jacobians(model: Any, z: torch.Tensor, mu: torch.Tensor, cells: np.n
 
     J (n, len(cells), r) = dh/dz of the decoded ``channel`` at ``cells``; M (n, r, r) = G^T G / n_out with
     G = d decode / dz over the ``scored`` channels and every cell, so that trace(M P) is the mean variance
-    of the decoded field under a latent covariance P. Forward-mode autodiff, one Jacobian-vector product
-    per latent direction (r decoder passes per state), in chunks of ``chunk`` states (default: as many as keep
-    the full Jacobian under about 2e7 numbers); pDMD's decoder is linear and its exact Jacobian is used.
+    of the decoded field under a latent covariance P. G comes from the model's ``decoder_jacobian``, in
+    chunks of ``chunk`` states (default: as many as keep it under about 2e7 numbers).
     """
     c = model.shape.channels.index(channel)
     idx = torch.as_tensor(cells, dtype=torch.long, device=z.device)
     r = z.shape[1]
-    if model.kind == "pdmd":
-        n_cells = int(np.prod(model.grid))
-        std = model.stats_std.to(z)
-        G = torch.cat([model.basis[k * n_cells:(k + 1) * n_cells].to(z) * std[k] for k in scored])
-        J = model.observation_matrix(cells, channel).to(z)
-        M = G.T @ G / G.shape[0]
-        return J.expand(z.shape[0], *J.shape).clone(), M.expand(z.shape[0], r, r).clone()
     n_out = model.n_fields * int(np.prod(model.grid))
     chunk = chunk or int(np.clip(2e7 // (n_out * r), 1, 64))
     Js, Ms = [], []
     for s in range(0, z.shape[0], chunk):
-        zc, mc = z[s:s + chunk], mu[s:s + chunk]
-
-        def decode(x: torch.Tensor) -> torch.Tensor:
-            return model.decode(x, mc).flatten(2)
-
-        cols = []
-        for i in range(r):
-            tangent = torch.zeros_like(zc)
-            tangent[:, i] = 1.0
-            cols.append(torch.func.jvp(decode, (zc,), (tangent,))[1].detach())
-        G = torch.stack(cols, dim=-1)  # (chunk, C, n_cells, r)
+        G = model.decoder_jacobian(z[s:s + chunk], mu[s:s + chunk])  # (chunk, C, n_cells, r)
         Js.append(G[:, c, idx])
         Gs = G[:, list(scored)].flatten(1, 2)
         Ms.append(Gs.mT @ Gs / Gs.shape[1])

@@ -31,16 +31,7 @@ from gymnasium import spaces
 
 from .baselines import PaperLayout
 from .policies import PlacementTask, StaticPolicy, candidate_lattice
-from .rl import (
-    learning_curve_callback,
-    load_agent,
-    model_identity,
-    offline_seconds,
-    quiet_logger,
-    save_agent,
-    save_learning_curve,
-    trainer_command,
-)
+from .rl import learn_ppo, load_agent, offline_seconds, record_ppo_run, trainer_command
 from .scoring import forward_reference, run_layouts
 
 
@@ -207,7 +198,6 @@ def train_sequential(task: PlacementTask, *, timesteps: int = 16384, n_envs: int
     PPO defaults: one episode per env per rollout (n_steps = m), gamma = 1 (the only reward is the last),
     batch 64, 10 epochs, learning rate 3e-4, entropy bonus 0.01.
     """
-    from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecMonitor
 
     start = time.perf_counter()
@@ -219,30 +209,17 @@ def train_sequential(task: PlacementTask, *, timesteps: int = 16384, n_envs: int
     kwargs = dict(n_steps=m, batch_size=64, n_epochs=10, gamma=1.0, gae_lambda=1.0, learning_rate=3e-4,
                   ent_coef=0.01, seed=seed, device="cpu", verbose=0)
     kwargs.update(ppo_kwargs or {})
-    agent = PPO("MlpPolicy", venv, **kwargs)
-    agent.set_logger(quiet_logger())
-    curve = learning_curve_callback()
-    agent.learn(total_timesteps=int(timesteps), callback=curve, progress_bar=progress)
+    agent, curve = learn_ppo(venv, kwargs, timesteps, progress)
     wall = time.perf_counter() - start
     # Reference: the paper layout's normalized error on every training trajectory, with the same filter.
     n_train = task.dataset.n_trajectories("train")
     paper = PaperLayout().fit(task).layout
     paper_return = -float(scorer.score(np.repeat(paper[None], n_train, 0), np.arange(n_train)).mean())
-    meta = {
-        "kind": "sequential", "identity": model_identity(task), "candidates": cands.tolist(),
-        "timesteps": int(agent.num_timesteps), "n_envs": n_envs, "seed": seed,
-        "ppo": {k: v for k, v in kwargs.items() if k not in ("device", "verbose")},
-        "train_seconds": wall, "filter_runs": scorer.filter_runs, "reward_reference": reference,
-        "learning_curve": curve.as_dict(),
-        "paper_layout_return": paper_return,
-    }
-    if out is not None:
-        out = Path(out)
-        save_agent(agent, out / "sequential.zip", meta)
-        save_learning_curve(curve.as_dict(), out / "sequential_curve.png",
-                            f"sequential placement, {task.benchmark.name} ({task.model.kind} {task.config.filter.kind}, "
-                            f"m={m}, {len(cands)} candidates)",
-                            {"paper layout (all training trajectories)": paper_return})
+    title = (f"sequential placement, {task.benchmark.name} ({task.model.kind} {task.config.filter.kind}, "
+             f"m={m}, {len(cands)} candidates)")
+    meta = record_ppo_run(agent, curve, task, kind="sequential", candidates=cands, ppo_kwargs=kwargs,
+                          train_seconds=wall, paper_return=paper_return, out=out, title=title, n_envs=n_envs,
+                          filter_runs=scorer.filter_runs, reward_reference=reference)
     return agent, meta
 
 

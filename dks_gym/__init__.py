@@ -2,7 +2,8 @@
 
 ``import dks_gym`` registers ``DKS/Burgers-v0``, ``DKS/Cylinder-v0``, ``DKS/Dambreak-v0`` and ``DKS/Sphere-v0``
 (by string entry points: it imports neither torch nor the filter stack). ``LatentFilter``, ``FilterConfig``
-and ``load_model`` are imported on first use.
+and ``load_model`` are imported on first use; ``set_threads`` sets the torch CPU threads of dks-gym's
+training and filtering (default 1: see :mod:`dks_gym.threads`).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from importlib import import_module
 from typing import Any
 
 from .envs import SensingEnv, register_envs
+from .threads import set_threads
 from .version import __version__
 
 register_envs()
@@ -35,4 +37,4 @@ def __dir__() -> list[str]:
     return sorted([*globals(), *_LAZY])
 
 
-__all__ = ["FilterConfig", "LatentFilter", "SensingEnv", "__version__", "load_model", "register_envs"]
+__all__ = ["FilterConfig", "LatentFilter", "SensingEnv", "__version__", "load_model", "register_envs", "set_threads"]

@@ -2,8 +2,10 @@
 
 Every writer of dks-gym (datasets, results, checkpoints, the OpenFOAM case files and run cache) writes
 to a temporary name beside the target, flushes it to disk and renames it into place, so a crash, an
-error or Ctrl-C in the middle never leaves a truncated file that looks valid. The temporary name is
-``.<name>.tmp-<pid>-<random>`` (hidden, unique per process and call; ``*.h5.tmp*`` in .gitignore).
+error, Ctrl-C, SIGTERM or SIGHUP in the middle never leaves a truncated file that looks valid. The
+temporary name is ``.<name>.tmp-<pid>-<random>`` (hidden, unique per process and call; ``.*.tmp-*`` in
+.gitignore). An interruption removes it too; only a hard kill (SIGKILL, a power cut) can leave one behind,
+and that one never takes the target's name.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from .interrupt import exit_on_signals
 
 
 def temporary_name(target: str | Path, suffix: str = "") -> Path:
@@ -28,20 +32,23 @@ def atomic_path(target: str | Path, suffix: str = "") -> Iterator[Path]:
     The body writes the file at the yielded path (with any library: h5py, numpy, safetensors, plain
     ``open``) and closes it. On leaving normally the file is fsynced and renamed over ``target``
     (``os.replace``, atomic on POSIX and Windows). On any exception, KeyboardInterrupt included, the
-    temporary file is removed and ``target`` is left as it was. ``suffix`` ends the temporary name, for
-    writers that insist on an extension (``np.savez`` appends ``.npz`` otherwise).
+    temporary file is removed and ``target`` is left as it was. SIGTERM and SIGHUP do the same: while the
+    body runs they raise :class:`~dks_gym.interrupt.Terminated` (exit status 128 + signal number), when
+    their handler is the default one (:func:`~dks_gym.interrupt.exit_on_signals`). ``suffix`` ends the
+    temporary name, for writers that insist on an extension (``np.savez`` appends ``.npz`` otherwise).
     """
     target = Path(target)
-    tmp = temporary_name(target, suffix)
-    try:
-        yield tmp
-        # Data first, then the rename: after a power cut the target holds the old or the new file, never
-        # a renamed but empty one.
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with exit_on_signals():
+        tmp = temporary_name(target, suffix)
+        try:
+            yield tmp
+            # Data first, then the rename: after a power cut the target holds the old or the new file, never
+            # a renamed but empty one.
+            with open(tmp, "rb") as f:
+                os.fsync(f.fileno())
+            os.replace(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
 
 
 def atomic_write_text(target: str | Path, text: str) -> Path:

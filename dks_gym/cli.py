@@ -70,8 +70,14 @@ LAZY_COMMANDS = {
 
 @click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="dks-gym")
-def main() -> None:
+@click.option("--threads", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Torch CPU threads for training and filtering (default: DKS_GYM_THREADS, OMP_NUM_THREADS, "
+                   "else 1, the fastest measured on small CPUs; see docs/performance.md).")
+def main(threads: int | None) -> None:
     """dks-gym: Gymnasium environments for sparse flow sensing (Deep Koopman Sensing)."""
+    from .threads import set_threads
+
+    set_threads(threads)
 
 
 @main.group()
@@ -90,15 +96,17 @@ def data() -> None:
               help="Parallel OpenFOAM runs for cylinder and dambreak (default 1).")
 @click.option("--device", default=None,
               help="Torch device of the burgers and sphere solvers: cpu (default), cuda or cuda:N.")
+@click.option("--force", is_flag=True, help="Run a preset that needs a GPU on the CPU anyway (days for the sphere).")
 def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, overwrite: bool,
-                  workers: int | None, device: str | None) -> None:
+                  workers: int | None, device: str | None, force: bool) -> None:
     """Generate BENCHMARK's dataset (burgers, cylinder, dambreak, sphere).
 
-    The CFD benchmarks cache their OpenFOAM runs in FILE.work next to the output: an interrupted
-    generation resumes when rerun, and the folder is deleted once the file is written.
+    Prints what the run will cost before it starts. The CFD benchmarks cache their OpenFOAM runs in
+    FILE.work next to the output: an interrupted generation resumes when rerun, and the folder is deleted
+    once the file is written.
     """
     from .dataset import Dataset, generate_dataset
-    from .home import DataHomeError
+    from .home import DataHomeError, dataset_path
     from .solvers.openfoam import OpenFOAMError
 
     benchmark = benchmark.lower()
@@ -114,6 +122,17 @@ def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, over
             raise click.UsageError(f"--device is for the torch solvers (burgers, sphere); {benchmark} runs "
                                    "OpenFOAM on the CPU (see --workers)")
         options["device"] = device
+    cost = BENCHMARKS[benchmark].generation_costs.get(preset)
+    target = out if out is not None else dataset_path(benchmark, preset)
+    if cost is not None and not (target.exists() and not overwrite):
+        on_cpu = device is None or device == "cpu"
+        if cost.gpu and on_cpu and not force:
+            raise click.UsageError(
+                f"the {benchmark} {preset} preset is meant for a GPU: {cost.time}. Run it with --device cuda on a "
+                f"machine with a CUDA GPU, use --preset small to try the benchmark (a "
+                f"{BENCHMARKS[benchmark].generation_costs['small'].time} run), or add --force to run it on the CPU."
+            )
+        click.echo(f"generating {benchmark} {preset}: expect {cost.describe()}", err=True)
     start = time.perf_counter()
     try:
         path = generate_dataset(benchmark, preset, path=out, seed=seed, overwrite=overwrite, **options)
@@ -145,7 +164,7 @@ _OPTIONAL_PACKAGES = (
     ("distributed", "distributed", "Dask's cluster executor (client.get_executor())", "cluster"),
     ("pydmd", "pydmd", "pDMD latent model", "models"),
     ("xlstm", "xlstm", "xLSTM latent model", "models"),
-    ("pysensors", "python-sensors", "sensor placement baselines", "agents"),
+    ("pysensors", "python-sensors", "tests: cross-check of the QR/CCQR placement baselines", "dev"),
     ("stable_baselines3", "stable-baselines3", "RL sensor placement agents", "agents"),
 )
 
@@ -239,8 +258,8 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
             raise click.ClickException(str(exc)) from exc
         if result.loaded_only:
             line = f"{kind}: already trained, loaded in {result.wall_time_s:.1f} s"
-        elif kind == "pdmd":
-            line = f"pdmd: POD + parametric DMD fitted in {result.wall_time_s:.1f} s"
+        elif result.model.fitted_in_closed_form:
+            line = f"{kind}: POD + parametric DMD fitted in {result.wall_time_s:.1f} s"
         else:
             line = (f"{kind}: {result.new_steps} steps in {result.wall_time_s:.1f} s "
                     f"({result.steps_done} in all)")

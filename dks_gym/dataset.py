@@ -13,8 +13,10 @@ Layout of one file (one benchmark, one preset)::
     attrs: benchmark, channels, observed_channel, scored_channels, param_name, dt, generator (JSON),
            schema_version, created
 
-Files are written to a temporary name next to the target, under a lock, and renamed into place only when
-complete, so an interrupted or failed generation never leaves a file that looks valid.
+Files are written to a temporary name next to the target, under a lock (kept in ``$DKS_GYM_HOME/.locks``,
+see :mod:`dks_gym.locks`), and renamed into place only when complete, so a failed generation, Ctrl-C,
+SIGTERM or SIGHUP never leaves a file that looks valid, nor a temporary one. Reading refuses a damaged
+file or NaN/inf in a trajectory with :class:`DataError`, naming the file and what to do.
 """
 
 from __future__ import annotations
@@ -28,11 +30,13 @@ from typing import Any
 
 import h5py
 import numpy as np
-from filelock import FileLock, Timeout
+from filelock import Timeout
 
 from .atomic import atomic_path
-from .benchmarks import BENCHMARKS, Benchmark, GeneratedData, check_preset, get_benchmark
+from .benchmarks import BENCHMARKS, PRESETS, Benchmark, GeneratedData, check_preset, get_benchmark
 from .home import dataset_path, ensure_writable
+from .interrupt import exit_on_signals
+from .locks import file_lock
 
 SCHEMA_VERSION = 1
 SPLITS = ("train", "test")
@@ -57,6 +61,11 @@ class SchemaError(ValueError):
 
 class DatasetMissing(FileNotFoundError):
     """No dataset file where one was expected; the message says how to create it."""
+
+
+class DataError(SchemaError):
+    """A file in the schema whose stored values cannot be used: a damaged block that HDF5 cannot read back,
+    or NaN/inf in a trajectory. The message names the file, the split and trajectory, and what to do."""
 
 
 # Writing ---------------------------------------------------------------------------------------------
@@ -102,18 +111,23 @@ def write_dataset(
 ) -> Path:
     """Write ``data`` to ``path`` atomically (temporary file, then rename) under a file lock.
 
-    ``lock_timeout`` is how long to wait for another writer of the same file (-1: wait forever).
+    ``lock_timeout`` is how long to wait for another writer of the same file (-1: wait forever). The lock
+    file lives in ``$DKS_GYM_HOME/.locks`` (:func:`dks_gym.locks.file_lock`), not beside ``path``.
     """
     bench = get_benchmark(benchmark)
     path = Path(path)
     ensure_writable(path.parent)
-    lock = FileLock(str(path) + ".lock", timeout=lock_timeout)
+    lock = file_lock(path, "write", timeout=lock_timeout)
     try:
         lock.acquire()
     except Timeout as exc:
-        raise RuntimeError(f"another process is writing {path}; wait for it or remove {lock.lock_file}") from exc
+        raise RuntimeError(
+            f"another process is writing {path} (it holds the lock {lock.lock_file}); wait for it to finish "
+            "or stop it (the lock is released when that process exits)"
+        ) from exc
     try:
-        # On errors and on KeyboardInterrupt alike the temporary file goes: nothing half-written survives.
+        # On errors, Ctrl-C, SIGTERM and SIGHUP alike the temporary file goes: nothing half-written survives.
+        # The lazy generators (Burgers) do their solving here, while the trajectories are written.
         with atomic_path(path) as tmp:
             _write(data, bench, tmp, extra_attrs or {})
     finally:
@@ -218,12 +232,17 @@ def generate_dataset(
     file. It is deleted after a successful write unless ``keep_workdir`` (or the generator option
     ``keep_cases``) is set, and kept after a failure or an interruption so that a rerun resumes from it.
     ``options`` go to the benchmark's generator (e.g. ``workers=2`` for the CFD benchmarks).
+
+    Two processes generating the same file take turns (a lock in ``$DKS_GYM_HOME/.locks``); the second finds
+    the file written and returns. SIGTERM and SIGHUP stop the generation like Ctrl-C: the generator's own
+    cleanup runs (its solver subprocesses are stopped), no temporary file stays, the work folder is kept,
+    and :class:`~dks_gym.interrupt.Terminated` (exit status 128 + signal number) is raised.
     """
     bench = get_benchmark(benchmark)
     check_preset(preset)
     path = Path(path) if path is not None else dataset_path(bench.name, preset)
     ensure_writable(path.parent)
-    with FileLock(str(path) + ".generate.lock"):
+    with exit_on_signals(), file_lock(path, "generate"):
         if path.exists() and not overwrite:
             return path
         workdir = path.with_name(f"{path.stem}.work")
@@ -404,11 +423,55 @@ class Dataset:
         n = self.n_trajectories(split)
         if not 0 <= int(index) < n:
             raise IndexError(f"trajectory {index} is out of range for split {split!r} with {n} trajectories")
-        return np.asarray(self.fields(split)[int(index)], dtype=np.float32)
+        return self.read(split, int(index))
 
     def frame(self, split: str, index: int, k: int) -> np.ndarray:
         """Frame ``k`` of one trajectory, (C, *grid)."""
-        return np.asarray(self.fields(split)[int(index), int(k)], dtype=np.float32)
+        return self.read(split, int(index), int(k))
+
+    def read(self, split: str, index: int, *selection: Any) -> np.ndarray:
+        """``fields(split)[index, *selection]`` as float32; a block HDF5 cannot decode raises :class:`DataError`.
+
+        A file whose header is intact but whose data is damaged (a truncated copy, a bad disk, bytes
+        overwritten) fails only here, when the damaged block is read.
+        """
+        fields = self.fields(split)
+        try:
+            return np.asarray(fields[(int(index), *selection)], dtype=np.float32)
+        except OSError as exc:
+            raise DataError(
+                f"{self.path} is damaged: trajectory {index} of split {split!r} cannot be read back ({exc}). "
+                f"{self._regenerate_hint()}"
+            ) from exc
+
+    def check_finite(
+        self, values: np.ndarray, split: str, index: int, channels: tuple[int, ...] | None = None
+    ) -> None:
+        """Raise :class:`DataError` if ``values`` (frames of trajectory ``index``: (n_t, C, *grid), or
+        (n_t, *grid) of the one channel in ``channels``) hold NaN or inf, naming the channel and the frame."""
+        if np.isfinite(values).all():  # the cheap common path: one pass, no copies kept
+            return
+        channels = tuple(range(len(self.channels))) if channels is None else tuple(channels)
+        per_channel = values[:, None] if values.ndim == 1 + len(self.grid) else values
+        for c, channel in enumerate(channels):
+            bad = ~np.isfinite(per_channel[:, c].reshape(per_channel.shape[0], -1)).all(axis=1)
+            if bad.any():
+                frames = np.flatnonzero(bad)
+                raise DataError(
+                    f"{self.path}: split {split!r}, trajectory {index}, channel {self.channels[channel]!r} holds NaN "
+                    f"or inf in {len(frames)} of {len(bad)} frames (first: frame {frames[0]}); the file is unusable "
+                    f"as data. {self._regenerate_hint()} If another tool wrote it, check that writer: the "
+                    "dks-gym writer refuses non-finite values."
+                )
+
+    def _regenerate_hint(self) -> str:
+        name = self.benchmark.name
+        if self.preset in PRESETS and self.benchmark.generator_available:
+            default = dataset_path(name, self.preset)
+            out = "" if self.path.resolve() == default.resolve() else f" --out {self.path}"
+            return (f"Regenerate it with `dks-gym data generate {name} --preset {self.preset}{out} --overwrite` "
+                    "or delete it.")
+        return "Regenerate it with the tool that wrote it, or delete it."
 
     def close(self) -> None:
         if self._file is not None:
@@ -463,9 +526,17 @@ def load_dataset(benchmark: str, preset: str = "paper", path: str | Path | None 
 def missing_message(bench: Benchmark, preset: str, path: Path) -> str:
     """What to tell a user whose dataset file is missing."""
     if bench.generator_available:
+
+        def command(name: str) -> str:
+            cost = bench.generation_costs.get(name)
+            return f"`dks-gym data generate {bench.name} --preset {name}`" + (f" ({cost.describe()})" if cost else "")
+
+        others = [p for p in PRESETS if p != preset]
+        lead = "try the benchmark first with the small preset" if preset != "small" else "the paper's data"
         return (
-            f"no {bench.name} dataset at {path}. Generate it with `dks-gym data generate {bench.name} "
-            f"--preset {preset}` (or pass data_path= to use a file in the dks-gym schema)."
+            f"no {bench.name} {preset} dataset at {path}. Generate it with {command(preset)}; "
+            f"{lead}: " + "; ".join(command(p) for p in others) + ". Or pass data_path= to use a file in the "
+            "dks-gym HDF5 schema."
         )
     return (
         f"no {bench.name} dataset at {path}, and the {bench.name} data generator is not part of this version of "

@@ -1,5 +1,5 @@
 """Rank sensor layouts on Burgers with a lite Koopman EKF in the loop: the paper layout, seeded random
-layouts, QR pivoting on POD modes (PySensors) and a custom policy, all under the same noise."""
+layouts, QR pivoting on POD modes and a custom policy, all under the same noise."""
 import numpy as np
 
 from dks_gym_agents import PlacementTask, StaticPolicy

@@ -16,9 +16,10 @@ import torch  # noqa: E402
 torch.set_num_threads(1)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="session", autouse=True)
 def data_home(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A data home private to the test session (the user's cache is never touched)."""
+    """A data home private to the test session, for every test (the user's cache, its lock folder included,
+    is never touched)."""
     home = tmp_path_factory.mktemp("dks_home")
     os.environ["DKS_GYM_HOME"] = str(home)
     return home

@@ -1,5 +1,6 @@
-"""Placement policies and the evaluation harness (agents/): valid layouts everywhere, QR against PySensors,
-greedy against the filter run independently, the monotone covariance objective, PPO smoke runs, the results file."""
+"""Placement policies and the evaluation harness (agents/): valid layouts everywhere, QR and CCQR against
+PySensors (a dev-only cross-check: the package pivots itself), greedy against the filter run independently,
+the monotone covariance objective, PPO smoke runs, the results file."""
 
 from __future__ import annotations
 
@@ -12,7 +13,15 @@ import numpy as np
 import pytest
 
 import dks_gym  # noqa: F401
-from dks_gym_agents.baselines import GreedyLayout, PaperLayout, QRLayout, RandomLayout, observed_snapshots
+from dks_gym_agents.baselines import (
+    GreedyLayout,
+    PaperLayout,
+    QRLayout,
+    RandomLayout,
+    ccqr_pivots,
+    observed_snapshots,
+    qr_pivots,
+)
 from dks_gym_agents.policies import PlacementTask, candidate_lattice, check_layout, distinct_picks
 from dks_gym_agents.scoring import LinearizedTrajectories, covariance_traces, run_layouts
 from dks_gym.dataset import Dataset, write_dataset
@@ -111,8 +120,9 @@ def test_every_policy_gives_valid_layouts(bench: str, burgers_task, cfd_tasks) -
 
 
 def test_qr_equals_pysensors_on_an_independent_svd_basis(burgers_task: PlacementTask) -> None:
-    """Our POD (Gram eigendecomposition) + SSPOR/QR gives the sensors PySensors picks with its own SVD basis."""
-    import pysensors as ps
+    """Our POD (Gram eigendecomposition) + scipy's pivoted QR gives the sensors PySensors picks with its own
+    SVD basis and its QR optimizer."""
+    ps = pytest.importorskip("pysensors")
 
     qr = QRLayout().fit(burgers_task)
     fields = np.asarray(burgers_task.dataset.fields("train")[:, :, 0], dtype=np.float64)  # (n, n_t, 1024)
@@ -127,7 +137,7 @@ def test_qr_equals_pysensors_on_an_independent_svd_basis(burgers_task: Placement
 def test_ccqr_keeps_qr_out_of_the_body(tmp_path: Path) -> None:
     """Cylinder data whose body cells vary most: plain QR picks body cells, the cost map (CCQR) never does,
     and the layout equals PySensors' CCQR with that cost map on an independent SVD basis."""
-    import pysensors as ps
+    ps = pytest.importorskip("pysensors")
 
     ds = Dataset(_noisy_synthetic("cylinder", tmp_path / "cylinder.h5", solid_boost=30.0))
     task = PlacementTask(ds, build_model("cylinder", "koopman", r=4, preset="lite", dataset=ds, seed=0),
@@ -143,6 +153,49 @@ def test_ccqr_keeps_qr_out_of_the_body(tmp_path: Path) -> None:
     reference = ps.SSPOR(basis=ps.basis.SVD(n_basis_modes=8, algorithm="arpack", random_state=0),
                          optimizer=ps.optimizers.CCQR(sensor_costs=costs), n_sensors=8)
     np.testing.assert_array_equal(policy.layout, reference.fit(X, quiet=True).get_selected_sensors())
+
+
+@pytest.mark.parametrize("case", ["dense", "negative-costs", "forbidden", "exhausted", "preferred-zero-rows"])
+def test_pivots_equal_pysensors_optimizers_on_random_bases(case: str) -> None:
+    """qr_pivots and ccqr_pivots rank every cell PySensors' QR and CCQR optimizers rank, in the same order,
+    on random orthonormal bases: no costs, mixed-sign costs, forbidden cells, a basis whose allowed cells
+    run out (rows exactly zero) before the last pivot, and zero rows that negative costs make pivots (the
+    one case where PySensors' zero-pivot reflector, reproduced as is, changes the later picks)."""
+    ps = pytest.importorskip("pysensors")
+    rng = np.random.default_rng(1)
+    n, r = 300, 12
+    basis = np.linalg.qr(rng.standard_normal((n, r)))[0]
+    costs = np.zeros(n)
+    if case == "negative-costs":
+        costs = rng.uniform(-0.05, 0.1, n)  # comparable to the row norms (~0.2): they reorder the picks
+    elif case == "forbidden":
+        costs[rng.choice(n, 250, replace=False)] = 1e6
+    elif case == "exhausted":
+        allowed = rng.choice(n, 20, replace=False)
+        basis[allowed[5:]] = 0.0  # only 5 allowed cells carry the basis
+        costs[:] = 1e6
+        costs[allowed] = 0.0
+    elif case == "preferred-zero-rows":
+        zero = rng.choice(n, 3, replace=False)
+        basis[zero] = 0.0
+        costs[zero] = -0.5  # preferred cells that carry nothing: they are picked with a zero residual
+    expected = ps.optimizers.CCQR(sensor_costs=costs).fit(basis).get_sensors()[:r]
+    ours = ccqr_pivots(basis, costs, r)
+    np.testing.assert_array_equal(ours, expected)
+    for k in (1, 5, r):  # the greedy prefix does not depend on where it stops
+        np.testing.assert_array_equal(ccqr_pivots(basis, costs, k), expected[:k])
+    if case == "dense":
+        np.testing.assert_array_equal(ours, ps.optimizers.QR().fit(basis).get_sensors()[:r])  # no cost: plain QR
+        np.testing.assert_array_equal(qr_pivots(basis, r), ps.optimizers.QR().fit(basis).get_sensors()[:r])
+    if case == "forbidden":
+        assert (costs[ours] == 0).all()
+        assert not np.array_equal(ours, qr_pivots(basis, r))  # the costs matter: this check can fail
+    if case == "negative-costs":
+        assert not np.array_equal(ours, ccqr_pivots(basis, np.zeros(n), r))
+    with pytest.raises(ValueError, match="n_pivots"):
+        ccqr_pivots(basis, costs, r + 1)
+    with pytest.raises(ValueError, match="costs"):
+        ccqr_pivots(basis, costs[:-1], r)
 
 
 def test_greedy_trace_falls_monotonically_and_matches_a_numpy_riccati(burgers_task: PlacementTask) -> None:

@@ -10,15 +10,21 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from filelock import FileLock
 
 from dks_gym.atomic import atomic_path, atomic_write_text
 from dks_gym.benchmarks import GeneratedData
 from dks_gym.cli import main
-from dks_gym.dataset import Dataset, DatasetMissing, SchemaError, load_dataset, write_dataset
+from dks_gym.dataset import DataError, Dataset, DatasetMissing, SchemaError, load_dataset, write_dataset
 from dks_gym.home import DataHomeError, dataset_path
+from dks_gym.locks import file_lock, lock_dir, lock_path
 
 from .conftest import synthetic_data
+from .damage import damage_chunk, put_nonfinite
+
+
+@pytest.fixture(autouse=True)
+def _private_home(data_home: Path) -> None:
+    """Writers keep their locks in the data home: every test here uses the session's private one."""
 
 
 def _arrays(data: GeneratedData) -> dict[tuple[str, int], np.ndarray]:
@@ -156,7 +162,7 @@ def test_failed_or_interrupted_write_leaves_nothing(tmp_path: Path, exc: BaseExc
     with pytest.raises(type(exc)):
         write_dataset(_failing(synthetic_data("burgers", n_train=3), exc), "burgers", target)
     assert not target.exists()
-    assert [p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")] == []
+    assert [p.name for p in tmp_path.iterdir()] == []  # no temporary file, no lock file
 
 
 @pytest.mark.parametrize("exc", [RuntimeError("writer failed"), KeyboardInterrupt()])
@@ -175,6 +181,30 @@ def test_atomic_path_keeps_the_old_file_until_the_new_one_is_complete(tmp_path: 
     np.testing.assert_array_equal(np.load(target)["x"], np.arange(3))
 
 
+def test_damaged_file_raises_data_error_saying_how_to_regenerate_it(tmp_path: Path) -> None:
+    """A file whose header is intact but whose data blocks are not: every read of the bad trajectory says so."""
+    path = write_dataset(synthetic_data("burgers", n_train=2), "burgers", tmp_path / "b.h5",
+                         extra_attrs={"preset": "small", "seed": 0})
+    damage_chunk(path, "train", 1)
+    with Dataset(path) as ds:  # opens and validates: only the data is damaged
+        ds.trajectory("train", 0)
+        for read in (lambda: ds.trajectory("train", 1), lambda: ds.frame("train", 1, 0),
+                     lambda: ds.read("train", 1, slice(None), 0)):
+            with pytest.raises(DataError, match="is damaged: trajectory 1 of split 'train'") as err:
+                read()
+            hint = f"dks-gym data generate burgers --preset small --out {path} --overwrite` or delete it"
+            assert hint in str(err.value)
+    # NaN or inf in stored data, from a writer other than ours (ours refuses it, see below).
+    foreign = tmp_path / "foreign.h5"
+    _write_by_hand(foreign)
+    put_nonfinite(foreign, "train", 1, frame=2, channel=0, value=-np.inf)
+    with Dataset(foreign) as ds:
+        with pytest.raises(DataError, match=r"split 'train', trajectory 1, channel 'u' holds NaN or inf in 1 of 3 "
+                                            r"frames \(first: frame 2\).*tool that wrote it"):
+            ds.check_finite(ds.trajectory("train", 1), "train", 1)
+        ds.check_finite(ds.trajectory("train", 0), "train", 0)
+
+
 def test_bad_generator_output_is_refused(tmp_path: Path) -> None:
     data = synthetic_data("burgers")
     data.trajectories = iter([("train", 0, np.full((4, 1, 1024), np.nan, np.float32))])
@@ -189,10 +219,55 @@ def test_bad_generator_output_is_refused(tmp_path: Path) -> None:
 
 def test_lock_keeps_a_second_writer_out(tmp_path: Path) -> None:
     target = tmp_path / "locked.h5"
-    with FileLock(str(target) + ".lock"):
-        with pytest.raises(RuntimeError, match="another process is writing"):
+    with file_lock(target, "write") as lock:
+        with pytest.raises(RuntimeError, match="another process is writing") as err:
             write_dataset(synthetic_data("burgers"), "burgers", target, lock_timeout=0.1)
-    assert not target.exists()
+    assert str(lock.lock_file) in str(err.value)  # the message names the lock file
+    assert Path(lock.lock_file).parent == lock_dir()
+    assert not target.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_locks_live_in_the_data_home_keyed_by_the_absolute_path(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                 data_home: Path) -> None:
+    """One lock per (target, kind), the same whichever way the path is spelled, and none beside the target."""
+    target = tmp_path / "sub" / "f.h5"
+    target.parent.mkdir()
+    (tmp_path / "link").symlink_to(target.parent)
+    monkeypatch.chdir(tmp_path)
+    lock = lock_path(target, "write")
+    assert lock.parent == data_home / ".locks" and lock.name.startswith("f.h5-") and lock.name.endswith(".write.lock")
+    assert lock_path(Path("sub/f.h5")) == lock_path(Path("sub/../sub/f.h5")) == lock_path(Path("link/f.h5")) == lock
+    assert lock_path(target, "generate") != lock and lock_path(tmp_path / "g.h5") != lock
+    with pytest.raises(ValueError, match="unknown lock kind"):
+        lock_path(target, "read")
+    # A data home that cannot be written: the lock goes to a hidden folder beside the target.
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setenv("DKS_GYM_HOME", str(blocker / "home"))
+    assert lock_path(target) == target.parent / ".locks" / lock.name
+
+
+def test_generate_write_and_train_leave_no_lock_file_beside_their_outputs(tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    from dks_gym.benchmarks import get_benchmark
+    from dks_gym.dataset import generate_dataset
+    from dks_gym.models.training import train_model
+
+    home = tmp_path / "home"
+    monkeypatch.setenv("DKS_GYM_HOME", str(home))
+    monkeypatch.setattr(type(get_benchmark("burgers")), "generate",
+                        lambda self, preset, **kwargs: synthetic_data("burgers", n_train=3, n_test=1))
+    out = tmp_path / "out"
+    out.mkdir()
+    write_dataset(synthetic_data("burgers"), "burgers", out / "written.h5")
+    generated = generate_dataset("burgers", "small", progress=False)
+    train_model("burgers", "koopman", 4, dataset=Dataset(generated), steps=2, batch_size=2,
+                path=out / "m.safetensors", progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["m.safetensors", "written.h5"]
+    assert sorted(p.name for p in (home / "data").iterdir()) == ["burgers-small.h5"]
+    kinds = sorted(p.name.rsplit(".", 2)[1] for p in (home / ".locks").iterdir())
+    assert kinds == ["generate", "train", "write", "write"]
+    assert not [p for p in tmp_path.rglob("*") if p.name.endswith(".lock") and p.parent.name != ".locks"]
 
 
 def test_lock_held_by_another_process_keeps_the_writer_out(tmp_path: Path) -> None:
@@ -201,9 +276,9 @@ def test_lock_held_by_another_process_keeps_the_writer_out(tmp_path: Path) -> No
     import sys
 
     target = tmp_path / "locked.h5"
-    holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from filelock import FileLock; lock = FileLock(sys.argv[1]); "
-         "lock.acquire(); print('held', flush=True); time.sleep(60)", str(target) + ".lock"],
+    holder = subprocess.Popen(  # the other process finds the lock through the helper, from the data home
+        [sys.executable, "-c", "import sys, time; from dks_gym.locks import file_lock; lock = file_lock(sys.argv[1]); "
+         "lock.acquire(); print('held', flush=True); time.sleep(60)", str(target)],
         stdout=subprocess.PIPE, text=True,
     )
     try:
@@ -216,6 +291,7 @@ def test_lock_held_by_another_process_keeps_the_writer_out(tmp_path: Path) -> No
         holder.wait()
     write_dataset(synthetic_data("burgers"), "burgers", target, lock_timeout=5)  # released with the process
     assert Dataset(target).n_trajectories("train") == 2
+    assert [p.name for p in tmp_path.iterdir()] == ["locked.h5"]
 
 
 def test_unwritable_data_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -327,3 +403,30 @@ def test_cli_device_and_workers_options_go_to_the_right_generators(tmp_path: Pat
     result = runner.invoke(main, ["data", "generate", "sphere", "--workers", "2", "--out", str(tmp_path / "s.h5")])
     assert result.exit_code == 2 and "--workers is for the OpenFOAM benchmarks" in result.output
     assert not (tmp_path / "c.h5").exists() and not (tmp_path / "s.h5").exists()
+
+
+def test_cli_states_the_cost_first_and_refuses_a_gpu_preset_on_the_cpu(tmp_path: Path) -> None:
+    runner = CliRunner()
+    result = runner.invoke(main, ["data", "generate", "burgers", "--preset", "small", "--out", str(tmp_path / "b.h5")])
+    assert result.exit_code == 0, result.output
+    assert result.output.index("expect about") < result.output.index("done in")
+    result = runner.invoke(main, ["data", "generate", "sphere", "--out", str(tmp_path / "s.h5")])
+    assert result.exit_code == 2
+    for hint in ("--device cuda", "--preset small", "--force", "40 h on a CPU"):
+        assert hint in result.output
+    assert not (tmp_path / "s.h5").exists()
+
+
+def test_missing_dataset_names_both_presets_with_their_cost(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from dks_gym.benchmarks import BENCHMARKS
+
+    monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path))
+    for bench in BENCHMARKS.values():
+        with pytest.raises(DatasetMissing) as err:
+            load_dataset(bench.name, "paper")
+        message = str(err.value)
+        for preset in ("paper", "small"):
+            assert f"dks-gym data generate {bench.name} --preset {preset}` ({bench.generation_costs[preset].time}" \
+                in message
+        assert ("needs OpenFOAM" in message) == (bench.name in ("cylinder", "dambreak"))
+        assert ("needs a CUDA GPU" in message) == (bench.name == "sphere")

@@ -12,7 +12,9 @@ from gymnasium.utils.env_checker import check_env
 
 import dks_gym  # noqa: F401  (registers the ids)
 from dks_gym.benchmarks import BENCHMARKS, get_benchmark
-from dks_gym.dataset import DatasetMissing, SchemaError
+from dks_gym.dataset import DataError, DatasetMissing, SchemaError
+
+from .damage import damage_chunk, put_nonfinite
 
 
 def _episode(env, seed=None, options=None, actions=None):
@@ -241,3 +243,54 @@ def test_vector_env(burgers_small: Path) -> None:
     assert obs.shape == (3, 16)
     obs, *_ = envs.step(np.zeros(3, dtype=np.int64))
     assert obs.shape == (3, 16)
+
+
+@pytest.fixture(params=["whole", "by-frame"])
+def read_mode(request, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Small trajectories are read whole, large ones (the sphere) frame by frame: both paths check the data."""
+    if request.param == "by-frame":
+        monkeypatch.setattr("dks_gym.envs.sensing._WHOLE_TRAJECTORY_BYTES", 0)
+    return request.param
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_nonfinite_data_is_refused_at_reset_naming_file_split_trajectory_and_channel(
+    make_synthetic, read_mode: str, value: float
+) -> None:
+    path = make_synthetic("burgers", n_test=3)
+    put_nonfinite(path, "test", 1, frame=2, channel=0, value=value)
+    env = gym.make("DKS/Burgers-v0", data_path=str(path))
+    obs, info = env.reset(seed=0, options={"trajectory": 0})  # the other trajectories are fine
+    assert np.all(np.isfinite(obs)) and np.isfinite(info["sigma"])
+    with pytest.raises(DataError) as err:
+        env.reset(seed=0, options={"trajectory": 1})
+    message = str(err.value)
+    for part in (str(path), "split 'test'", "trajectory 1", "channel 'u'", "NaN or inf", "frame 2", "writer"):
+        assert part in message, message
+    assert isinstance(err.value, SchemaError)
+    with pytest.raises(RuntimeError, match="call reset"):  # no half-opened episode to step on
+        env.step(None)
+    env.reset(seed=0, options={"trajectory": 2})
+    env.step(None)
+
+
+def test_nonfinite_value_in_an_unobserved_channel_is_refused_too(make_synthetic) -> None:
+    """The true state feeds the filters' rewards: a NaN in u poisons them though only p is read by sensors."""
+    path = make_synthetic("cylinder", n_test=1)
+    put_nonfinite(path, "test", 0, frame=1, channel=0)
+    env = gym.make("DKS/Cylinder-v0", data_path=str(path))
+    with pytest.raises(DataError, match="trajectory 0, channel 'u'"):
+        env.reset(seed=0)
+
+
+def test_damaged_data_block_is_refused_at_reset_naming_the_file(make_synthetic, read_mode: str) -> None:
+    path = make_synthetic("burgers", n_test=2)
+    damage_chunk(path, "test", 1)
+    env = gym.make("DKS/Burgers-v0", data_path=str(path))  # the header is intact: the file opens
+    env.reset(seed=0, options={"trajectory": 0})
+    with pytest.raises(DataError) as err:
+        env.reset(seed=0, options={"trajectory": 1})
+    message = str(err.value)
+    for part in (str(path), "is damaged", "trajectory 1", "split 'test'", "delete it"):
+        assert part in message, message
+    assert isinstance(err.value.__cause__, OSError)

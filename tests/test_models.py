@@ -158,6 +158,22 @@ def test_forecast_jacobian_equals_autograd_jacobian(kind):
         assert not torch.allclose(jac[0], jac[1])  # state dependent
 
 
+def test_decoder_jacobian_equals_central_differences_of_the_decoder():
+    model = _lite("burgers", "mlp", r=4).double()
+    torch.manual_seed(4)
+    z = torch.randn(2, 4, dtype=torch.float64)
+    mu = _mu_grid("burgers", 2).double()
+    G = model.decoder_jacobian(z, mu)
+    assert G.shape == (2, 1, 1024, 4)
+    h = 1e-6
+    for i in range(4):
+        dz = torch.zeros_like(z)
+        dz[:, i] = h
+        with torch.no_grad():
+            fd = (model.decode(z + dz, mu) - model.decode(z - dz, mu)).flatten(2) / (2 * h)
+        torch.testing.assert_close(G[..., i], fd, rtol=1e-6, atol=1e-8)
+
+
 # xLSTM one-step evaluation -------------------------------------------------------------------------------
 def test_xlstm_refuses_sequences():
     model = _lite("burgers", "xlstm", r=8)

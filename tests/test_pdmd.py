@@ -36,9 +36,7 @@ def travelling_waves(mus: np.ndarray, mu_dependent_decay: bool = False) -> np.nd
 def fitted(r: int = 6, mu_dependent_decay: bool = False) -> tuple[PDMD, np.ndarray]:
     data = travelling_waves(TRAIN_MU, mu_dependent_decay)
     model = build_model("burgers", "pdmd", r=r, stats_mean=[0.5], stats_std=[0.8])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # PyDMD warns on the exactly low-rank synthetic data
-        model.fit(data, TRAIN_MU)
+    model.fit(data, TRAIN_MU)
     return model, data
 
 
@@ -105,8 +103,10 @@ def test_online_operator_ignores_noise_level_directions():
 
 
 def test_matches_parametric_dmd_with_ezyrb_pod_on_dense_data():
-    from ezyrb import POD, RBF
+    ezyrb = pytest.importorskip("ezyrb")  # a dev-only cross-check: the models extra does not install it
     from pydmd import DMD, ParametricDMD
+
+    POD, RBF = ezyrb.POD, ezyrb.RBF
 
     model, data = fitted(r=6, mu_dependent_decay=True)
     normalized = (data[:, :, 0].astype(np.float64) - 0.5) / 0.8  # (n, n_t, N)
@@ -137,6 +137,66 @@ def test_interpolant_is_the_multiquadric_rbf():
             axis=1,
         ).real
         assert np.allclose(ours, expected, rtol=1e-8, atol=1e-10) == should_match
+
+
+@pytest.mark.parametrize(
+    "points, new_points",
+    [
+        (TRAIN_MU[:, None], TEST_MU[:, None]),  # the Burgers viscosity range, evenly spaced
+        (np.geomspace(0.01, 1.0, 9)[:, None], np.geomspace(0.012, 0.9, 7)[:, None]),  # uneven spacing
+        (np.linspace(59.5, 990.5, 12)[:, None], np.array([[60.0], [333.3], [990.0]])),  # the Reynolds range
+        (np.array([[0.1], [0.2], [0.45], [0.5]]), np.array([[0.0], [0.3], [0.7]])),  # extrapolation too
+        (np.random.default_rng(3).uniform([0.01, 50.0], [1.0, 900.0], (15, 2)),  # two parameters, unequal edges
+         np.random.default_rng(4).uniform([0.01, 50.0], [1.0, 900.0], (6, 2))),
+        (np.c_[np.linspace(0.01, 1.0, 8), np.full(8, 3.0)], np.c_[np.linspace(0.1, 0.9, 5), np.full(5, 3.0)]),
+    ],
+    ids=["burgers-nu", "geometric", "reynolds", "extrapolate", "2d", "2d-flat-edge"],
+)
+def test_multiquadric_rbf_equals_ezyrb_rbf(points, new_points):
+    """The adapter predicts what ezyrb's RBF(kernel="multiquadric") predicts (real, complex, multi-output)."""
+    ezyrb = pytest.importorskip("ezyrb")
+    from dks_gym.models.rbf import MultiquadricRBF, default_epsilon
+
+    rng = np.random.default_rng(len(points))
+    values = {
+        "multi-output": rng.standard_normal((len(points), 5)) * np.array([1.0, 1e-3, 10.0, 1e3, 0.5]),
+        "complex": rng.standard_normal((len(points), 3)) + 1j * rng.standard_normal((len(points), 3)),
+        "smooth": np.c_[np.sin(3 * points.sum(axis=1)), np.exp(-points[:, 0])],
+    }
+    for name, y in values.items():
+        reference = ezyrb.RBF(kernel="multiquadric")
+        reference.fit(points, y)
+        ours = MultiquadricRBF().fit(points, y)
+        assert ours.fitted_epsilon == reference.epsilon, name
+        expected = reference.predict(new_points)
+        np.testing.assert_allclose(ours.predict(new_points), expected, rtol=1e-12, atol=1e-12 * np.abs(y).max())
+    if points.shape[1] == 1:
+        assert default_epsilon(points) == pytest.approx(np.ptp(points))  # one parameter: its range
+    # The check can fail: another shape parameter gives other predictions.
+    other = MultiquadricRBF(epsilon=0.5 * default_epsilon(points)).fit(points, values["smooth"])
+    assert not np.allclose(other.predict(new_points), expected, rtol=1e-6, atol=1e-9)
+
+
+def test_pdmd_online_operator_equals_the_one_with_ezyrb_rbf():
+    """A pDMD whose ParametricDMD interpolates with ezyrb's RBF gives the same coefficients and A~(mu)."""
+    ezyrb = pytest.importorskip("ezyrb")
+    from pydmd import DMD, ParametricDMD
+
+    from dks_gym.models.pdmd import _ReducedCoordinates
+
+    model, _ = fitted(r=6, mu_dependent_decay=True)
+    reference, _ = fitted(r=6, mu_dependent_decay=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        pdmd = ParametricDMD(DMD(svd_rank=6), _ReducedCoordinates(), ezyrb.RBF(kernel="multiquadric"))
+        coeffs = reference.train_coefficients.numpy().transpose(0, 2, 1)
+        pdmd.fit(np.ascontiguousarray(coeffs), reference.train_params.numpy())
+    reference._pdmd = pdmd
+    mu = np.r_[TEST_MU, TRAIN_MU[[0, 7]], 0.005]
+    np.testing.assert_allclose(model.interpolated_coefficients(mu), reference.interpolated_coefficients(mu),
+                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(model.online_operator(mu).numpy(), reference.online_operator(mu).numpy(),
+                               rtol=1e-10, atol=1e-12)
 
 
 def test_online_operator_reproduces_the_interpolated_coefficients():
@@ -210,3 +270,27 @@ def test_bad_input_raises():
         model.fit(data, np.ones(4))
     with pytest.raises(ValueError, match="n_t - 1 >= r"):
         build_model("burgers", "pdmd", r=60).fit(data, TRAIN_MU[:4])
+
+
+def test_exact_decoder_jacobian_equals_autodiff_of_the_decoder():
+    """pDMD's closed-form decoder Jacobian against the generic forward-mode one of the base class."""
+    from dks_gym.models.latent_model import LatentModel
+
+    model, _ = fitted()
+    z = torch.randn(3, model.r, dtype=torch.float64)
+    mu = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    exact = model.decoder_jacobian(z, mu)
+    autodiff = LatentModel.decoder_jacobian(model, z, mu)
+    assert exact.shape == autodiff.shape == (3, model.n_fields, int(np.prod(model.grid)), model.r)
+    torch.testing.assert_close(exact, autodiff.to(exact), rtol=1e-10, atol=1e-12)
+
+
+def test_fit_records_pydmds_condition_number_instead_of_warning():
+    """The ill-conditioned stacked coefficients are a diagnostic of the fit, not a warning on every fit."""
+    data = travelling_waves(TRAIN_MU)
+    model = build_model("burgers", "pdmd", r=6, stats_mean=[0.5], stats_std=[0.8])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.fit(data, TRAIN_MU)
+    assert model.dmd_condition_number is not None and model.dmd_condition_number > 1e5
+    assert model.fit_info["dmd_condition_number"] == model.dmd_condition_number

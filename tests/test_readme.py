@@ -46,7 +46,9 @@ def test_readme_has_python_blocks() -> None:
 
 @pytest.mark.parametrize("line, code", BLOCKS, ids=[f"README.md:{line}" for line, _ in BLOCKS])
 def test_readme_python_block_runs(line: int, code: str, readme_home: Path, tmp_path: Path) -> None:
-    env = {**os.environ, "DKS_GYM_HOME": str(readme_home), "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    # As a user types it: no thread settings (dks_gym.threads picks them), only the test's data home.
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "DKS_GYM_THREADS")}
+    env.update(DKS_GYM_HOME=str(readme_home), MPLBACKEND="Agg")
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=400)
     assert proc.returncode == 0, f"README.md block at line {line} failed:\n{proc.stderr[-3000:]}"

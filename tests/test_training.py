@@ -232,3 +232,17 @@ def test_cli_train(ds, tmp_path, monkeypatch):
     bad = CliRunner().invoke(main, ["train", "burgers", "--model", "mlp", "--device", "cuda"] + args[4:])
     if not torch.cuda.is_available():
         assert bad.exit_code != 0 and "CUDA is not available" in bad.output
+
+
+@pytest.mark.parametrize("in_memory", [True, False])
+def test_training_on_a_damaged_file_names_the_file(make_synthetic, in_memory: bool) -> None:
+    from dks_gym.dataset import DataError
+
+    from .damage import damage_chunk
+
+    path = make_synthetic("burgers", n_train=3, n_t=6)
+    damage_chunk(path, "train", 1)
+    with Dataset(path) as ds, pytest.raises(DataError, match="is damaged: trajectory 1 of split 'train'"):
+        sampler = WindowSampler(ds, 1, seed=0, in_memory=in_memory)
+        for _ in range(20):  # streamed: some batch draws trajectory 1
+            sampler.sample(4)

@@ -38,6 +38,8 @@ def _run(env: gym.Env, seed: int, action=None) -> tuple[list[float], dict]:
     return rewards, info
 
 
+# check_env warns that a wrapped env is not its unwrapped self: checking the wrapper is the point here.
+@pytest.mark.filterwarnings("ignore:.*is different from the unwrapped version:UserWarning")
 @pytest.mark.parametrize("kind, filt", [("koopman", "ekf"), ("koopman", "enkf"), ("koopman", "forward"),
                                         ("mlp", "ekf"), ("xlstm", "ekf"), ("pdmd", "ekf"), ("pdmd", "enkf")])
 def test_check_env(models: dict, kind: str, filt: str) -> None:

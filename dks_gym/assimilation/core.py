@@ -21,6 +21,7 @@ from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
 from ..filters import EKF, EnKF, LatentDynamics, bind_param
 from ..models import MODEL_KINDS, load_model, model_device
+from ..threads import torch_threads
 from .config import FilterConfig
 
 # Per model, per dataset file: the approximate initial latent state (it costs one pass over the train split).
@@ -130,6 +131,7 @@ class Assimilation:
                               forecast_jacobian=model.filter_forecast_jacobian(mu),
                               observe_jacobian=model.filter_observe_jacobian(rows, channel))
 
+    @torch_threads("assimilate")
     def start(self, envs: Sequence[SensingEnv], seed: int, sensors: np.ndarray | None = None) -> Snapshot:
         """A fresh filter for the envs' current episodes (call right after resetting them).
 
@@ -148,6 +150,7 @@ class Assimilation:
         self._filter.reset(z0.to(self.device, self.dtype).clone(), self.config.P0)
         return self._snapshot(envs)
 
+    @torch_threads("assimilate")
     def step(self, envs: Sequence[SensingEnv], readings: np.ndarray, sensors: np.ndarray) -> Snapshot:
         """Forecast (Eqs. 13-14), update with ``readings`` (B, m) taken at ``sensors`` (B, m) unless this is
         the forward run (Eqs. 15-17), decode the mean and score it against the envs' truth (Eq. 18)."""

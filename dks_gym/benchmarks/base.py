@@ -50,6 +50,19 @@ class GeneratedData:
 
 
 @dataclass(frozen=True)
+class GenerationCost:
+    """What generating one preset of a benchmark takes, as measured (docs/envs.md has the commands)."""
+
+    time: str  # wall time in words, with the machine it was measured on, e.g. "2 min 30 s with --workers 2"
+    needs: tuple[str, ...] = ()  # what must be installed or present, e.g. ("OpenFOAM",)
+    gpu: bool = False  # impractical without a CUDA GPU: `dks-gym data generate` refuses it on a CPU
+
+    def describe(self) -> str:
+        """``time``, plus what it needs: one phrase for messages."""
+        return self.time + (f"; needs {' and '.join(self.needs)}" if self.needs else "")
+
+
+@dataclass(frozen=True)
 class Benchmark:
     """Static description of one benchmark (SPEC section 1).
 
@@ -75,6 +88,8 @@ class Benchmark:
     # The data generator as "module:function", called as function(benchmark, preset, seed=..., workdir=...,
     # progress=..., **options) -> GeneratedData; None where this version of dks-gym has none.
     generator_entry_point: str | None = None
+    # Per preset, what generating it costs (for the missing-data message and `dks-gym data generate`).
+    generation_costs: dict[str, GenerationCost] = field(default_factory=dict)
 
     @property
     def ndim(self) -> int:

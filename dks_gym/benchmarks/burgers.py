@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 
-from .base import Benchmark, GeneratedData, check_preset, interleaved_sweep
+from .base import Benchmark, GeneratedData, GenerationCost, check_preset, interleaved_sweep
 
 if TYPE_CHECKING:
     import torch
@@ -338,4 +338,8 @@ BURGERS = BurgersBenchmark(
     n_train=50,
     n_test=10,
     generator_entry_point="dks_gym.benchmarks.burgers:generate_burgers",
+    generation_costs={
+        "small": GenerationCost("about 15 s on one CPU core"),
+        "paper": GenerationCost("about 1 min on one CPU core"),
+    },
 )

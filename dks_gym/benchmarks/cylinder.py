@@ -27,6 +27,7 @@ import math
 
 import numpy as np
 
+from .base import GenerationCost
 from .layout import (
     CellGridBenchmark,
     check_layout,
@@ -137,4 +138,9 @@ CYLINDER = CylinderBenchmark(
     cell_type_codes=dict(CELL_TYPE_CODES),
     solid_codes=(CELL_TYPE_CODES["body"],),
     generator_entry_point="dks_gym.solvers.cylinder_case:generate_cylinder",
+    generation_costs={
+        "small": GenerationCost("6-26 s on a 2-core CPU", needs=("OpenFOAM",)),
+        "paper": GenerationCost("43 min with --workers 2 on a 2-core CPU (the default --workers 1 is slower)",
+                                needs=("OpenFOAM",)),
+    },
 )

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .base import GenerationCost
 from .layout import (
     CellGridBenchmark,
     check_layout,
@@ -144,4 +145,9 @@ DAMBREAK = DambreakBenchmark(
     cell_type_codes=dict(CELL_TYPE_CODES),
     solid_codes=(CELL_TYPE_CODES["obstacle"],),
     generator_entry_point="dks_gym.solvers.dambreak_case:generate_dambreak",
+    generation_costs={
+        "small": GenerationCost("6-26 s on a 2-core CPU", needs=("OpenFOAM",)),
+        "paper": GenerationCost("2 min 30 s with --workers 2 on a 2-core CPU (7 min 27 s with the default 1)",
+                                needs=("OpenFOAM",)),
+    },
 )

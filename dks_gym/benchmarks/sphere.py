@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from .cylinder import CELL_TYPE_CODES, MAX_SENSORS, NEAR_WAKE_LENGTH, RADIUS, WAKE_OFFSET
+from .base import GenerationCost
 from .layout import (
     CellGridBenchmark,
     check_layout,
@@ -148,4 +149,10 @@ SPHERE = SphereBenchmark(
     cell_type_codes=dict(CELL_TYPE_CODES),
     solid_codes=(CELL_TYPE_CODES["body"],),
     generator_entry_point="dks_gym.solvers.sphere_case:generate_sphere",
+    generation_costs={
+        "small": GenerationCost("16-30 s on one CPU core"),
+        # 1.5e12 lattice updates (docs/sphere.md): 40 h at the ~10 MLUPS measured on a CPU, minutes at 1-2.5 GLUPS.
+        "paper": GenerationCost("an estimated 10-25 min on an H100-class GPU (not yet run); about 40 h on a CPU",
+                                needs=("a CUDA GPU",), gpu=True),
+    },
 )

@@ -194,15 +194,21 @@ class SensingEnv(gym.Env):
 
     # State -----------------------------------------------------------------------------------------
     def _load_trajectory(self, traj: int) -> None:
-        self._trajectory = traj
+        # A damaged block raises DataError from the read, NaN or inf in the data DataError from the check:
+        # both name the file, the split and the trajectory (and the channel), before any reading is served.
+        self._k = -1  # until the trajectory is in, step() asks for a (successful) reset
         fields = self.dataset.fields(self.split)
         nbytes = 4 * int(np.prod(fields.shape[1:]))
+        observed = self.benchmark.observed_index
         if nbytes <= _WHOLE_TRAJECTORY_BYTES:
-            self._frames = self.dataset.trajectory(self.split, traj)
-            self._observed = self._frames[:, self.benchmark.observed_index]
+            frames = self.dataset.trajectory(self.split, traj)
+            self.dataset.check_finite(frames, self.split, traj)  # every channel: the true state feeds the rewards
+            self._frames, self._observed = frames, frames[:, observed]
         else:
-            self._frames = None
-            self._observed = np.asarray(fields[traj, :, self.benchmark.observed_index], dtype=np.float32)
+            values = self.dataset.read(self.split, traj, slice(None), observed)
+            self.dataset.check_finite(values, self.split, traj, channels=(observed,))
+            self._frames, self._observed = None, values
+        self._trajectory = traj
         if traj not in self._sigma_cache:
             self._sigma_cache[traj] = noise_sigma(self._observed, self.fluid_mask, self.noise_level)
 

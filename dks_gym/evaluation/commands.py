@@ -76,10 +76,10 @@ def compare_command(a: Path, b: Path, experiment: str | None) -> None:
 
 
 @click.command("demo")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("dks-gym-demo"),
-              show_default=True, help="Folder for the figure and the results file.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Folder for the figure and the results file (default: $DKS_GYM_HOME/demo).")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
-def demo_command(out: Path, device: str) -> None:
+def demo_command(out: Path | None, device: str) -> None:
     """Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a figure (minutes)."""
     from .demo import run_demo
 

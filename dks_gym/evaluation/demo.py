@@ -14,11 +14,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ..benchmarks import get_benchmark
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart
 from .results import make_record, new_results, save_results
 
 DEMO_BENCHMARK = "burgers"
 DEMO_FILTERS = ("forward", "ekf", "enkf")
+#: Measured: `dks-gym train burgers --model all --preset lite` on one CPU core (docs/reproduce.md).
+DEMO_TRAIN_MINUTES_PER_MODEL = "0.5"
 
 
 def _fmt(mean: float | None, std: float | None) -> str:
@@ -44,14 +47,37 @@ def demo_table(records: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def first_run_message() -> str:
+    """What the demo is about to do, in plain words: what it must generate and train first, and how long."""
+    from ..home import data_home, dataset_path
+    from ..models.checkpoint import checkpoint_path
+
+    bench = get_benchmark(DEMO_BENCHMARK)
+    todo = []
+    if not dataset_path(DEMO_BENCHMARK, "paper").exists():
+        todo.append(f"generating the Burgers data ({bench.generation_costs['paper'].time})")
+    untrained = [MODEL_LABELS[kind] for kind in MODEL_ORDER
+                 if not checkpoint_path(DEMO_BENCHMARK, kind, "lite", 32, 1, data_preset="paper").exists()]
+    if untrained:
+        todo.append(f"training the {'four' if len(untrained) == 4 else ', '.join(untrained)} lite "
+                    f"model{'s' if len(untrained) > 1 else ''} (about {DEMO_TRAIN_MINUTES_PER_MODEL} min each on "
+                    "one CPU core)")
+    run = "then running the forward run, the EKF and the EnKF of each model on the 10 test trajectories"
+    if not todo:
+        return f"dks-gym demo: data and models found in {data_home()}; {run} (about 1 min)."
+    return (f"dks-gym demo, first run: {' and '.join(todo)}, {run}. Later runs reuse the data and the models "
+            f"kept in {data_home()}.")
+
+
 def run_demo(
-    out: str | Path = "dks-gym-demo",
+    out: str | Path | None = None,
     *,
     device: str = "cpu",
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Run the demo (see the module docstring); return the results document written to ``out/results.json``."""
+    """Run the demo (see the module docstring); return the results document written to ``out/results.json``
+    (``out`` defaults to ``$DKS_GYM_HOME/demo``)."""
     import torch
     from tqdm.auto import tqdm
 
@@ -60,13 +86,14 @@ def run_demo(
     from ..models import load_model
     from ..models.checkpoint import dataset_identity
     from ..assimilation import AssimilationConfig, run_assimilation
+    from ..home import data_home
 
     start = time.perf_counter()
-    out = Path(out)
+    out = data_home() / "demo" if out is None else Path(out)
+    log(first_run_message())
     try:
         ds = load_dataset(DEMO_BENCHMARK, "paper")
     except DatasetMissing:
-        log("dks-gym demo: generating the Burgers dataset (50 train / 10 test trajectories)")
         ds = load_dataset(DEMO_BENCHMARK, "paper", generate_dataset(DEMO_BENCHMARK, "paper", progress=progress))
     models = {}
     for kind in MODEL_ORDER:

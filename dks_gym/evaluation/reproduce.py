@@ -166,7 +166,8 @@ def _model_info(model: Any, kind: str, r: int, T: int, preset: str, dataset: Any
 
     path = checkpoint_path(dataset.benchmark.name, kind, preset, r, T, data_preset=dataset.preset or "custom")
     meta = read_metadata(path) if path.exists() else {}
-    info = {"model": kind, "r": r, "T": T, "preset": "" if kind == "pdmd" else preset, "checkpoint": str(path),
+    info = {"model": kind, "r": r, "T": T, "preset": "" if model.fitted_in_closed_form else preset,
+            "checkpoint": str(path),
             "steps": meta.get("steps_done"), "batch_size": meta.get("batch_size"),
             "train_time_s": meta.get("train_time_s"), "train_device": meta.get("device")}
     err = one_step_error(model, dataset, "test")

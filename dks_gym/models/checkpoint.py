@@ -131,16 +131,15 @@ def build_metadata(model: LatentModel, *, preset: str, T: int, dataset: Any, **t
         "format_version": FORMAT_VERSION,
         "benchmark": model.benchmark,
         "model": model.kind,
-        "preset": None if model.kind == "pdmd" else preset,
+        "preset": None if model.fitted_in_closed_form else preset,
         "r": model.r,
-        "T": None if model.kind == "pdmd" else int(T),
+        "T": None if model.fitted_in_closed_form else int(T),
         "dt": model.dt,
         "dataset": dataset_identity(dataset),
         "dks_gym_version": __version__,
         "torch_version": torch.__version__,
     }
-    if model.kind == "pdmd":
-        meta["pdmd"] = {"pinv_rtol": model.pinv_rtol, "fit_info": model.fit_info}
+    meta.update(model.checkpoint_metadata())
     meta.update(training)
     return meta
 

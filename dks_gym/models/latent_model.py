@@ -11,9 +11,10 @@ Every model is a ``torch.nn.Module`` with attributes ``benchmark``, ``kind`` ("k
     rollout(z0, mu, n_steps)                                    -> (B, n_steps + 1, r)
     filter_forecast_jacobian(mu)            dF/dz as the filters take it: a constant (B, r, r) or a callable
     filter_observe_jacobian(rows, channel)  dh/dz as the filters take it: None (autodiff) or a callable
+    decoder_jacobian(z, mu)                                     -> d decode/dz (B, C, n_cells, r)
 
 A model owns its linearization: the Koopman model hands the filters K(mu) (cached per mu), pDMD A~(mu)
-and its exact observation matrix, the MLP and xLSTM maps an autodiff Jacobian.
+and its exact observation and decoder matrices, the MLP and xLSTM maps an autodiff Jacobian.
 
 Fields enter and leave in physical units: each model holds the per-channel train-split mean and std as
 buffers and normalizes inside ``encode`` and de-normalizes inside ``decode``. Where the benchmark has a
@@ -25,6 +26,7 @@ and :meth:`NeuralLatentModel.reconstruction_target` keeps, so a training loss on
 
 from __future__ import annotations
 
+import warnings
 from collections import OrderedDict
 from typing import Any, Callable
 
@@ -49,6 +51,8 @@ class LatentModel(nn.Module):
     """Base class: benchmark geometry, normalization buffers, input checks and the shared helpers."""
 
     kind: str = ""
+    #: True for models fitted in closed form (pDMD): no training schedule, preset or window length T.
+    fitted_in_closed_form: bool = False
 
     def __init__(
         self,
@@ -172,6 +176,28 @@ class LatentModel(nn.Module):
         """
         return None
 
+    def decoder_jacobian(self, z: torch.Tensor, mu: torch.Tensor) -> torch.Tensor:
+        """d decode(z, mu) / dz at each latent state, detached, (B, C, n_cells, r) in physical units.
+
+        Forward-mode autodiff, one Jacobian-vector product per latent direction (r decoder passes); the
+        caller chunks B to bound memory (B * C * n_cells * r numbers). Linear decoders override it.
+        """
+
+        def decode(x: torch.Tensor) -> torch.Tensor:
+            return self.decode(x, mu).flatten(2)
+
+        cols = []
+        with warnings.catch_warnings():
+            # torch's forward-mode AD loads its own decompositions through torch.jit.script, which torch itself
+            # deprecates (torch/_decomp/decompositions_for_jvp.py): nothing to change on our side.
+            warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated",
+                                    category=DeprecationWarning)
+            for i in range(z.shape[1]):
+                tangent = torch.zeros_like(z)
+                tangent[:, i] = 1.0
+                cols.append(torch.func.jvp(decode, (z,), (tangent,))[1].detach())
+        return torch.stack(cols, dim=-1)
+
     def observe(self, z: ArrayLike, mu: ArrayLike, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
         """h(z) = S(decode(z)): the decoded ``channel`` (index or name) at flat C-order grid ``sensors``, (B, m)."""
         idx = self._sensor_index(sensors)
@@ -196,6 +222,10 @@ class LatentModel(nn.Module):
         if not 0 <= int(channel) < self.n_fields:
             raise ValueError(f"channel must be in [0, {self.n_fields}), got {channel}")
         return int(channel)
+
+    def checkpoint_metadata(self) -> dict[str, Any]:
+        """Model-specific entries for the checkpoint's metadata (none by default)."""
+        return {}
 
     def extra_repr(self) -> str:
         return f"benchmark={self.benchmark!r}, kind={self.kind!r}, r={self.r}, dt={self.dt}"
@@ -241,7 +271,7 @@ class NeuralLatentModel(LatentModel):
             self.cell_type = None
 
     def _cell_type_tensor(self, cell_type: ArrayLike) -> torch.Tensor:
-        ct = torch.as_tensor(np.asarray(cell_type), dtype=torch.float32)
+        ct = torch.tensor(np.asarray(cell_type), dtype=torch.float32)  # a copy: the caller's array may be read-only
         if tuple(ct.shape) != self.grid:
             raise ValueError(f"cell_type must have the grid shape {self.grid}, got {tuple(ct.shape)}")
         return ct.to(torch.get_default_device())

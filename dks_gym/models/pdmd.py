@@ -11,10 +11,12 @@ Offline fit, in three steps:
    for the dense float32 matrix (75 GB in float64). With q power iterations it reads the data
    2 + q times (default q = 2).
 2. PyDMD's ``ParametricDMD`` in its monolithic form (one ``DMD(svd_rank=r)`` on the stacked
-   coefficient matrix) with an ezyrb ``RBF`` interpolant whose kernel is passed explicitly as
-   "multiquadric" (ezyrb's default is thin-plate spline despite its docstring). Its spatial reduction
-   is the identity because it receives the POD coefficients U_r^T X of step 1, which is exactly what
-   ``ParametricDMD`` computes with an ezyrb ``POD`` of rank r, without handing it the dense snapshots.
+   coefficient matrix) with a multiquadric RBF interpolant in mu, :class:`~dks_gym.models.rbf.MultiquadricRBF`:
+   scipy's ``RBFInterpolator`` called exactly as ezyrb's ``RBF(kernel="multiquadric")`` calls it (same
+   default shape parameter), so the predictions equal ezyrb's without installing it. (ezyrb's own default
+   kernel is thin-plate spline despite its docstring.) Its spatial reduction is the identity because it
+   receives the POD coefficients U_r^T X of step 1, which is exactly what ``ParametricDMD`` computes with
+   an ezyrb ``POD`` of rank r, without handing it the dense snapshots.
 3. Online, at a parameter mu, the interpolated coefficients z_k(mu) (Eq. A3) give the one-step
    operator A~(mu) = Z_{1:} Z_{:-1}^+ (Eq. A4), cached per mu. The forecast is A~(mu) z.
    The pseudoinverse drops singular values of Z_{:-1} below ``pinv_rtol`` times the largest, by default
@@ -32,6 +34,8 @@ mu; h(z) = S decode(z) is affine with Jacobian S diag(std) U_r (:meth:`PDMD.obse
 from __future__ import annotations
 
 import math
+import re
+import warnings
 from typing import Any, Callable
 
 import numpy as np
@@ -39,6 +43,9 @@ import torch
 
 from .latent_model import ArrayLike, LatentModel
 from .presets import BenchmarkShape
+
+#: PyDMD's warning about the condition number of the snapshots it fits (pydmd/snapshots.py).
+_CONDITION_WARNING = re.compile(r"Input data condition number ([-+]?[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)")
 
 
 def streamed_pod(
@@ -123,6 +130,7 @@ class PDMD(LatentModel):
     """
 
     kind = "pdmd"
+    fitted_in_closed_form = True
     _RESIZABLE = ("basis", "singular_values", "train_coefficients", "train_params")
 
     def __init__(
@@ -146,6 +154,8 @@ class PDMD(LatentModel):
         self.register_buffer("train_params", torch.zeros(0, dtype=torch.float64))
         self.fit_info: dict[str, Any] = {}
         self._pdmd: Any = None
+        # PyDMD's condition number of the stacked coefficients when it exceeds 1e5 (see parametric_dmd).
+        self.dmd_condition_number: float | None = None
         self._operator_cache: dict[float, np.ndarray] = {}
 
     @property
@@ -207,6 +217,7 @@ class PDMD(LatentModel):
         }
         self._reset_dmd()
         self.parametric_dmd()  # fit the monolithic DMD now, so that its warnings surface at fit time
+        self.fit_info["dmd_condition_number"] = self.dmd_condition_number
         return self
 
     def fit_dataset(self, dataset: Any, **kwargs: Any) -> "PDMD":
@@ -221,12 +232,25 @@ class PDMD(LatentModel):
         """The fitted ``pydmd.ParametricDMD`` (rebuilt from the stored coefficients after loading)."""
         self._require_fitted()
         if self._pdmd is None:
-            from ezyrb import RBF
             from pydmd import DMD, ParametricDMD
 
-            pdmd = ParametricDMD(DMD(svd_rank=self.r), _ReducedCoordinates(), RBF(kernel="multiquadric"))
+            from .rbf import MultiquadricRBF
+
+            pdmd = ParametricDMD(DMD(svd_rank=self.r), _ReducedCoordinates(), MultiquadricRBF())
             coeffs = self.train_coefficients.detach().cpu().numpy()
-            pdmd.fit(np.ascontiguousarray(coeffs.transpose(0, 2, 1)), self.train_params.cpu().numpy())
+            # PyDMD warns when the stacked coefficients' condition number exceeds 1e5, which POD coefficients
+            # of smooth flows always do; the DMD's rank-r truncation is what handles it. Keep the number as a
+            # diagnostic (``dmd_condition_number``) instead of repeating the warning on every fit and load.
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                pdmd.fit(np.ascontiguousarray(coeffs.transpose(0, 2, 1)), self.train_params.cpu().numpy())
+            self.dmd_condition_number = None
+            for w in caught:
+                found = _CONDITION_WARNING.match(str(w.message))
+                if found:
+                    self.dmd_condition_number = float(found.group(1))
+                else:
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             self._pdmd = pdmd
         return self._pdmd
 
@@ -290,6 +314,17 @@ class PDMD(LatentModel):
             return torch.stack([self.observation_matrix(s, channel) for s in sensor_rows(z.shape[0])]).to(z)
 
         return jacobian
+
+    def decoder_jacobian(self, z: torch.Tensor, mu: torch.Tensor | None = None) -> torch.Tensor:
+        """The decoder is affine: diag(std) U_r for every state, (B, C, n_cells, r) (a broadcast view)."""
+        self._require_fitted()
+        n_cells = math.prod(self.grid)
+        G = self.basis.to(z).view(self.n_fields, n_cells, -1) * self.stats_std.to(z)[:, None, None]
+        return G.expand(z.shape[0], *G.shape)
+
+    def checkpoint_metadata(self) -> dict[str, Any]:
+        """The pseudoinverse tolerance and the fit's diagnostics."""
+        return {"pdmd": {"pinv_rtol": self.pinv_rtol, "fit_info": self.fit_info}}
 
     def observation_matrix(self, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
         """J = S diag(std) U_r restricted to ``channel`` at ``sensors``, (m, r): h(z) = J z + mean[channel]."""

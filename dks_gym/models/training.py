@@ -39,8 +39,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from filelock import FileLock
 
+from ..locks import file_lock
+from ..threads import torch_threads
 from .checkpoint import (
     CheckpointMissing,
     build_metadata,
@@ -155,6 +156,7 @@ class WindowSampler:
         self, dataset: Any, horizon: int = 1, *, seed: int = 0, split: str = "train",
         in_memory: bool | None = None, progress: bool = False,
     ) -> None:
+        self.dataset, self.split = dataset, split
         self.fields = dataset.fields(split)
         self.params = torch.as_tensor(dataset.params(split), dtype=torch.float64)
         self.n_traj, self.n_t = int(self.fields.shape[0]), int(self.fields.shape[1])
@@ -179,7 +181,7 @@ class WindowSampler:
 
         out = np.empty(self.fields.shape, dtype=np.float32)
         for i in tqdm(range(self.n_traj), desc="reading train split", unit="traj", disable=not progress):
-            out[i] = self.fields[i]  # one trajectory (one set of chunks) at a time
+            out[i] = self.dataset.read(self.split, i)  # one trajectory (one set of chunks) at a time
         return out
 
     @property
@@ -198,7 +200,7 @@ class WindowSampler:
             x = self.data[traj[:, None], start[:, None] + self._offsets]
         else:
             x = torch.from_numpy(np.stack([
-                np.asarray(self.fields[int(i), int(k): int(k) + self.horizon + 1], dtype=np.float32)
+                self.dataset.read(self.split, int(i), slice(int(k), int(k) + self.horizon + 1))
                 for i, k in zip(traj, start)
             ]))
         return x, self.params[traj]
@@ -281,6 +283,7 @@ class TrainingResult:
     loaded_only: bool = False  # the checkpoint was already complete: nothing was trained or fitted
 
 
+@torch_threads("train")
 def train_model(
     benchmark: Any,
     model: str = "koopman",
@@ -324,7 +327,7 @@ def train_model(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     start_time = time.perf_counter()
-    with FileLock(str(path) + ".lock"):  # concurrent trainers of one checkpoint wait instead of racing
+    with file_lock(path, "train"):  # concurrent trainers of one checkpoint wait instead of racing
         if model == "pdmd":
             return _fit_pdmd(name, r, dataset, path, seed, device, resume, start_time)
         schedule = training_schedule(name, preset)
@@ -469,8 +472,10 @@ def load_model(
             f"{reason}. Train it with `{command}` (it resumes an unfinished run), or call "
             "load_model(..., train_if_missing=True)."
         )
-    if progress:
-        print(f"dks-gym: {reason}; training it now (`{command}`)", flush=True)
+    if progress:  # plain words: this is the expected first use, not an error
+        what = "resuming its unfinished training" if path.exists() else "training it on first use"
+        print(f"dks-gym: {name} {model} model ({preset}, r={r}, T={T}): {what}, as `{command}` would; it is "
+              f"kept at {path} for later runs", flush=True)
     result = train_model(name, model, r, preset, T, dataset=dataset, data_preset=data_preset, device=device,
                          path=path, progress=progress)
     return result.model

@@ -1,0 +1,77 @@
+"""Multiquadric RBF interpolation in the parameter: the interpolant of the pDMD baseline (Eq. A3).
+
+:class:`MultiquadricRBF` stands in for ezyrb's ``RBF(kernel="multiquadric")`` with the ``fit(points,
+values)`` / ``predict(points)`` interface that PyDMD's ``ParametricDMD`` calls, so the pDMD baseline
+does not need ezyrb (which installs Hugging Face ``datasets``, pyarrow and pandas). ezyrb's ``RBF`` is a
+thin wrapper over ``scipy.interpolate.RBFInterpolator``; this is the same call with the same arguments,
+so the predictions are the same numbers (tests/test_pdmd.py checks this against ezyrb):
+
+* kernel "multiquadric", phi(r) = -sqrt(1 + (epsilon r)^2) in scipy's sign convention (the sign
+  does not change the interpolant: the weights change sign with it);
+* smoothing 0 (exact interpolation), all points as neighbours, scipy's default polynomial degree
+  (0, a constant, for the multiquadric);
+* ezyrb's default shape parameter, :func:`default_epsilon`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.interpolate import RBFInterpolator
+
+
+def default_epsilon(points: ArrayLike) -> float:
+    """ezyrb's default shape parameter for points (n, d): (prod of nonzero edges / d)^(1 / their count).
+
+    The edges are those of the points' bounding box; d counts every dimension, a zero edge included,
+    exactly as ezyrb 1.3 computes it. For one parameter this is the parameter range max - min.
+    """
+    xi = _points(points)
+    edges = np.amax(xi, axis=0) - np.amin(xi, axis=0)
+    edges = edges[np.nonzero(edges)]
+    if edges.size == 0:
+        raise ValueError("the interpolation points all coincide: no shape parameter can be derived from them")
+    # The same numpy expression as ezyrb, so that epsilon (and every prediction) is bit for bit the same.
+    return float(np.power(np.prod(edges) / xi.shape[-1], 1.0 / edges.size))
+
+
+def _points(points: ArrayLike) -> np.ndarray:
+    """Points as a float (n, d) array; like scipy's RBFInterpolator, 1-D input is refused, not guessed."""
+    xi = np.asarray(points, dtype=np.float64)
+    if xi.ndim != 2:
+        raise ValueError(f"points must be a 2-D array (n_points, n_dims), got shape {xi.shape}")
+    return xi
+
+
+class MultiquadricRBF:
+    """Multiquadric radial-basis interpolant with ezyrb's default shape parameter.
+
+    ``epsilon=None`` derives it from the points at every :meth:`fit`. (ezyrb derives it at its first fit
+    and keeps it for later fits; ParametricDMD always refits on the same training parameters, so both
+    give the same epsilon there.)
+    """
+
+    kernel = "multiquadric"
+
+    def __init__(self, epsilon: float | None = None) -> None:
+        if epsilon is not None and not epsilon > 0:
+            raise ValueError(f"epsilon must be positive, got {epsilon}")
+        self.epsilon = epsilon
+        self.fitted_epsilon: float | None = None
+        self.interpolator: RBFInterpolator | None = None
+
+    def fit(self, points: ArrayLike, values: ArrayLike) -> "MultiquadricRBF":
+        """Interpolate ``values`` (n, ...) given at ``points`` (n, d); real or complex values."""
+        xi = _points(points)
+        self.fitted_epsilon = default_epsilon(xi) if self.epsilon is None else float(self.epsilon)
+        self.interpolator = RBFInterpolator(
+            xi, np.asarray(values), kernel=self.kernel, epsilon=self.fitted_epsilon,
+            smoothing=0.0, neighbors=None, degree=None,
+        )
+        return self
+
+    def predict(self, points: ArrayLike) -> np.ndarray:
+        """The interpolant at ``points`` (n_new, d), shape (n_new, ...)."""
+        if self.interpolator is None:
+            raise RuntimeError("this MultiquadricRBF is not fitted yet: call fit(points, values)")
+        return self.interpolator(_points(points))

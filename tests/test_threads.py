@@ -1,0 +1,87 @@
+"""Torch threads per task (dks_gym.threads): the override order, restoring, and the heavy calls using it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import pytest
+import torch
+
+from dks_gym import threads
+from dks_gym.threads import set_threads, threads_for, torch_threads
+
+
+@pytest.fixture
+def clean_threads(monkeypatch: pytest.MonkeyPatch):
+    """No thread variables in the environment, no override; torch at 2 threads outside the calls."""
+    for var in threads.ENV_VARS:
+        monkeypatch.delenv(var, raising=False)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    yield
+    set_threads(None)
+    torch.set_num_threads(previous)
+
+
+def test_override_order(clean_threads, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert threads_for("train") == threads.TASK_THREADS["train"] == 1
+    assert threads_for("simulate") is None
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert threads_for("train") == threads_for("simulate") == 3
+    monkeypatch.setenv("DKS_GYM_THREADS", "4")
+    assert threads_for("assimilate") == 4
+    set_threads(5)
+    assert threads_for("assimilate") == 5
+    set_threads(None)
+    assert threads_for("assimilate") == 4
+
+
+@pytest.mark.parametrize("value", ["0", "two", "-1"])
+def test_bad_thread_settings_are_refused(clean_threads, monkeypatch: pytest.MonkeyPatch, value: str) -> None:
+    monkeypatch.setenv("DKS_GYM_THREADS", value)
+    with pytest.raises(ValueError, match="DKS_GYM_THREADS"):
+        threads_for("train")
+    with pytest.raises(ValueError, match="positive integer"):
+        set_threads(0)
+    with pytest.raises(ValueError, match="unknown task"):
+        threads_for("training")
+
+
+def test_torch_threads_restores_the_callers_count(clean_threads) -> None:
+    with torch_threads("train"):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == 2
+    with pytest.raises(RuntimeError), torch_threads("assimilate"):
+        raise RuntimeError("boom")
+    assert torch.get_num_threads() == 2
+    with torch_threads("simulate"):  # None: torch's own count
+        assert torch.get_num_threads() == 2
+
+
+def test_filter_and_training_run_on_the_chosen_threads(clean_threads, burgers_small: Path, tmp_path: Path) -> None:
+    from dks_gym import LatentFilter
+    from dks_gym.dataset import load_dataset
+    from dks_gym.models import build_model
+    from dks_gym.models.training import train_model
+
+    ds = load_dataset("burgers", "small", burgers_small)
+    model = build_model("burgers", "mlp", 4, "lite", dataset=ds)
+    seen: list[int] = []
+    forecast = model.forecast
+    model.forecast = lambda z, mu: (seen.append(torch.get_num_threads()), forecast(z, mu))[1]
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf")
+    env.reset(seed=0)
+    env.step(None)
+    assert seen and set(seen) == {1}
+    assert torch.get_num_threads() == 2
+    set_threads(2)
+    seen.clear()
+    env.step(None)
+    assert set(seen) == {2}
+    set_threads(None)
+
+    counts: list[int] = []
+    train_model("burgers", "mlp", r=4, dataset=ds, steps=2, batch_size=2, path=tmp_path / "m.safetensors",
+                progress=False, on_step=lambda step, terms: counts.append(torch.get_num_threads()))
+    assert counts == [1, 1] and torch.get_num_threads() == 2
