@@ -42,6 +42,7 @@ def make_adaptive_env(task: PlacementTask, candidates: np.ndarray, *, n_envs: in
         preset=task.dataset.preset or "paper",
         data_path=str(task.dataset.path), split="train", sensor_mode="select", candidates=candidates,
         n_sensors=task.n_sensors, noise_level=task.config.noise_level,
+        uncertainty=False,  # the reward is the MSE: the predictive std would cost r decoder passes per step
     )
     n_candidates = len(candidates)
 

@@ -58,7 +58,7 @@ def run_layouts(model: Any, dataset: Dataset, layouts: np.ndarray, trajectories:
     # One env per (trajectory, seed) reads the union of all layouts' cells: each pair sees exactly the noise
     # the environments give that cell, which depends on (noise seed, split, trajectory, frame, cell) only.
     result = run_dataset(model, dataset, trajectories, seeds, config, split=split, share=True, layouts=layouts,
-                         dtype=dtype, sensors=np.unique(layouts))
+                         dtype=dtype, sensors=np.unique(layouts), uncertainty=False)  # rankings score the MSE
     result.extras["noise_seeds"] = seeds
     return result
 
@@ -90,7 +90,7 @@ def run_adaptive(model: Any, dataset: Dataset, decide: Callable[[np.ndarray], np
     seeds = _episode_seeds(config, len(trajectories), noise_seeds)
     result = run_dataset(model, dataset, trajectories, seeds, config, decide=decide, dtype=dtype,
                          n_sensors=config.n_sensors, sensor_mode="select",
-                         candidates=np.asarray(candidates, dtype=np.int64))
+                         candidates=np.asarray(candidates, dtype=np.int64), uncertainty=False)
     result.extras["noise_seeds"] = seeds
     return result
 
@@ -132,6 +132,7 @@ class LinearizedTrajectories:
                  config: AssimilationConfig, *, split: str = "train", dtype: torch.dtype = torch.float64) -> None:
         bench = dataset.benchmark
         device = model_device(model)
+        self.model = model  # resolves the config's named P0 and Q ("calibrated")
         self.cells = np.unique(np.asarray(cells, dtype=np.int64))
         self.trajectories = np.asarray(trajectories, dtype=np.int64)
         fluid = bench.fluid_mask(dataset.cell_type)
@@ -182,7 +183,12 @@ def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: 
     batch = n_layouts * n_traj
     zeros = torch.zeros(batch, r, dtype=lin.J.dtype, device=lin.J.device)
     eye = torch.eye(r, dtype=lin.J.dtype, device=lin.J.device)
-    state = GaussianState(zeros, config.filter.P0 * eye.expand(batch, r, r))
+    def covariance(value: float | torch.Tensor) -> torch.Tensor:  # a variance times I, or an (r, r) matrix
+        value = torch.as_tensor(value, dtype=lin.J.dtype, device=lin.J.device)
+        return (value * eye if value.ndim == 0 else value).expand(batch, r, r)
+
+    Q = covariance(config.filter.process_noise(lin.model))
+    state = GaussianState(zeros, covariance(config.filter.initial_covariance(lin.model)).clone())
     R = lin.sigma[which] ** 2
     y = torch.zeros(batch, layouts.shape[1], dtype=lin.J.dtype, device=lin.J.device)
     traces = []
@@ -190,7 +196,7 @@ def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: 
         Jk = lin.J[which[:, None], k, rows]  # (L T, m, r)
         dynamics = LatentDynamics(lambda z: z, lambda z: torch.zeros_like(y), forecast_jacobian=lin.F[which, k - 1],
                                   observe_jacobian=Jk)
-        state, _ = ekf_forecast(state, dynamics, config.filter.Q)
+        state, _ = ekf_forecast(state, dynamics, Q)
         state, _ = ekf_update(state, y, dynamics, R)
         if space == "field":
             traces.append((lin.M[which, k] * state.cov).sum(dim=(-2, -1)))  # trace(M P), both symmetric

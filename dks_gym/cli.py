@@ -265,6 +265,9 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
                     f"({result.steps_done} in all)")
         if len(result.losses):
             line += f", final loss {result.losses[-1, 0]:.3e} (normalized)"
+        if result.best_validation_loss is not None:
+            line += (f", best validation loss {result.best_validation_loss:.3e}"
+                     f"{' (stopped early)' if result.stopped_early else ''}")
         click.echo(f"{line} -> {result.path}")
         if evaluate:
             err = one_step_error(result.model, ds)

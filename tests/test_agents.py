@@ -27,6 +27,7 @@ from dks_gym_agents.scoring import LinearizedTrajectories, covariance_traces, ru
 from dks_gym.dataset import Dataset, write_dataset
 from dks_gym.assimilation import AssimilationConfig
 from dks_gym.models import build_model
+from dks_gym.models.training import calibrate
 from dks_gym.wrappers import LatentFilter
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -58,11 +59,19 @@ def _noisy_synthetic(benchmark: str, path: Path, solid_boost: float = 1.0, n_t: 
     return path
 
 
+def _untrained(benchmark: str, ds: Dataset):
+    """An untrained lite Koopman model (r=4) with the calibration training would store (for the default
+    calibrated Q and P0), measured on two training trajectories."""
+    model = build_model(benchmark, "koopman", r=4, preset="lite", dataset=ds, seed=0)
+    model.calibration = calibrate(model, ds, [0, 1])
+    return model
+
+
 @pytest.fixture(scope="module")
 def burgers_task(burgers_small: Path) -> PlacementTask:
     """Burgers `small` data with an untrained lite Koopman model (r=4): the plumbing does not depend on training."""
     ds = Dataset(burgers_small)
-    return PlacementTask(ds, build_model("burgers", "koopman", r=4, preset="lite", dataset=ds, seed=0))
+    return PlacementTask(ds, _untrained("burgers", ds))
 
 
 @pytest.fixture(scope="module")
@@ -71,8 +80,7 @@ def cfd_tasks(tmp_path_factory: pytest.TempPathFactory) -> dict[str, PlacementTa
     tasks = {}
     for bench in CFD:
         ds = Dataset(_noisy_synthetic(bench, folder / f"{bench}.h5"))
-        model = build_model(bench, "koopman", r=4, preset="lite", dataset=ds, seed=0)
-        tasks[bench] = PlacementTask(ds, model, AssimilationConfig(n_sensors=4))
+        tasks[bench] = PlacementTask(ds, _untrained(bench, ds), AssimilationConfig(n_sensors=4))
     return tasks
 
 
@@ -140,8 +148,7 @@ def test_ccqr_keeps_qr_out_of_the_body(tmp_path: Path) -> None:
     ps = pytest.importorskip("pysensors")
 
     ds = Dataset(_noisy_synthetic("cylinder", tmp_path / "cylinder.h5", solid_boost=30.0))
-    task = PlacementTask(ds, build_model("cylinder", "koopman", r=4, preset="lite", dataset=ds, seed=0),
-                         AssimilationConfig(n_sensors=8))
+    task = PlacementTask(ds, _untrained("cylinder", ds), AssimilationConfig(n_sensors=8))
     solid = ~task.fluid_mask.ravel()
     X = observed_snapshots(ds).astype(np.float64)
     X -= X.mean(axis=0)
@@ -212,12 +219,15 @@ def test_greedy_trace_falls_monotonically_and_matches_a_numpy_riccati(burgers_ta
     layout = greedy.layout
     ours = covariance_traces(lin, layout[None], cfg)[0]  # (T, n_t - 1)
     pos = np.searchsorted(lin.cells, layout)
+    P0 = np.asarray(cfg.filter.initial_covariance(task.model), dtype=np.float64)  # the calibrated (r, r) ones
+    Q = np.asarray(cfg.filter.process_noise(task.model), dtype=np.float64)
+    assert P0.shape == Q.shape == (task.model.r, task.model.r)
     for t in range(len(lin.trajectories)):
-        P = cfg.filter.P0 * np.eye(task.model.r)
+        P = P0.copy()
         R = float(lin.sigma[t]) ** 2 * np.eye(len(layout))
         for k in range(1, lin.J.shape[1]):
             F, J, M = lin.F[t, k - 1].numpy(), lin.J[t, k][pos].numpy(), lin.M[t, k].numpy()
-            P = F @ P @ F.T + cfg.filter.Q * np.eye(task.model.r)
+            P = F @ P @ F.T + Q
             K = P @ J.T @ np.linalg.inv(J @ P @ J.T + R)
             P = (np.eye(task.model.r) - K @ J) @ P
             assert ours[t, k - 1] == pytest.approx(np.trace(M @ P), rel=1e-6)
@@ -246,7 +256,8 @@ def test_greedy_error_scores_are_the_filter_error_of_latent_filter_runs(burgers_
 
 def test_run_layouts_is_the_filter_per_layout(burgers_task: PlacementTask) -> None:
     """Two layouts batched on the same trajectory (sharing cells) give each what a lone run of that layout gives."""
-    cfg = AssimilationConfig(n_sensors=4, noise_seed=3)
+    # The paper's P0 and Q: an untrained model's calibrated ones are so small that no layout moves it.
+    cfg = AssimilationConfig(n_sensors=4, noise_seed=3).replace(Q="paper", P0="paper")
     a, b = np.array([10, 300, 600, 900]), np.array([10, 310, 620, 900])
     both = run_layouts(burgers_task.model, burgers_task.dataset, np.stack([a, b]), [1, 1], cfg)
     for row, layout in enumerate((a, b)):
@@ -446,8 +457,7 @@ def cfd_tasks_m16(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Placeme
     tasks = {}
     for bench in CFD:
         ds = Dataset(_noisy_synthetic(bench, folder / f"{bench}.h5", n_t=10))
-        model = build_model(bench, "koopman", r=4, preset="lite", dataset=ds, seed=0)
-        tasks[bench] = PlacementTask(ds, model, AssimilationConfig(n_sensors=16))
+        tasks[bench] = PlacementTask(ds, _untrained(bench, ds), AssimilationConfig(n_sensors=16))
     return tasks
 
 

@@ -263,7 +263,7 @@ def test_generate_write_and_train_leave_no_lock_file_beside_their_outputs(tmp_pa
     generated = generate_dataset("burgers", "small", progress=False)
     train_model("burgers", "koopman", 4, dataset=Dataset(generated), steps=2, batch_size=2,
                 path=out / "m.safetensors", progress=False)
-    assert sorted(p.name for p in out.iterdir()) == ["m.safetensors", "written.h5"]
+    assert sorted(p.name for p in out.iterdir()) == ["m.loss.png", "m.safetensors", "written.h5"]  # and its figure
     assert sorted(p.name for p in (home / "data").iterdir()) == ["burgers-small.h5"]
     kinds = sorted(p.name.rsplit(".", 2)[1] for p in (home / ".locks").iterdir())
     assert kinds == ["generate", "train", "write", "write"]

@@ -60,7 +60,7 @@ def test_torch_threads_restores_the_callers_count(clean_threads) -> None:
 
 
 def test_filter_and_training_run_on_the_chosen_threads(clean_threads, burgers_small: Path, tmp_path: Path) -> None:
-    from dks_gym import LatentFilter
+    from dks_gym import FilterConfig, LatentFilter
     from dks_gym.dataset import load_dataset
     from dks_gym.models import build_model
     from dks_gym.models.training import train_model
@@ -70,7 +70,8 @@ def test_filter_and_training_run_on_the_chosen_threads(clean_threads, burgers_sm
     seen: list[int] = []
     forecast = model.forecast
     model.forecast = lambda z, mu: (seen.append(torch.get_num_threads()), forecast(z, mu))[1]
-    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf")
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf",
+                       config=FilterConfig(Q="paper", P0="paper"))  # an untrained model has no calibration
     env.reset(seed=0)
     env.step(None)
     assert seen and set(seen) == {1}

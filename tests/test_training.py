@@ -246,3 +246,115 @@ def test_training_on_a_damaged_file_names_the_file(make_synthetic, in_memory: bo
         sampler = WindowSampler(ds, 1, seed=0, in_memory=in_memory)
         for _ in range(20):  # streamed: some batch draws trajectory 1
             sampler.sample(4)
+
+
+# Schedule, validation, early stopping, calibration ---------------------------------------------------------
+def test_learning_rate_warms_up_then_decays_along_a_cosine():
+    from dks_gym.models.training import TrainingSchedule
+
+    s = TrainingSchedule(1000, 32, 1e-3, warmup=0.1, final_lr=1e-5)
+    assert s.warmup_steps == 100
+    np.testing.assert_allclose([s.lr_at(0), s.lr_at(49), s.lr_at(99)], [1e-5, 5e-4, 1e-3])
+    np.testing.assert_allclose(s.lr_at(100 + 450), 1e-5 + 0.5 * (1e-3 - 1e-5))  # half way down the cosine
+    np.testing.assert_allclose(s.lr_at(1000), 1e-5)
+    assert TrainingSchedule(10, 4, 1e-4).lr_at(7) == 1e-4  # the paper's: constant
+    lite = TrainingSchedule(8000, 32, 1e-3, epochs=60)
+    assert lite.resolve(495).steps == 929 and lite.resolve(4455).steps == 8000  # 60 epochs, at most 8000 steps
+
+
+def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_path):
+    from dks_gym.models.checkpoint import loss_curve_path
+    from dks_gym.models.training import ValidationMonitor, validation_trajectories
+
+    held_out = validation_trajectories(ds.n_trajectories("train"), 0.1, seed=3)
+    assert held_out == validation_trajectories(6, 0.1, seed=3) and len(held_out) == 1
+    seen = set()
+    sampler = WindowSampler(ds, 1, seed=0, trajectories=[i for i in range(6) if i not in held_out])
+    for _ in range(50):
+        seen.update(sampler.draw(8)[0].tolist())
+    assert not seen & set(held_out)
+
+    # A learning rate high enough that the last weights are not the best ones.
+    result = train_model("burgers", "mlp", R, "lite", dataset=ds, steps=60, batch_size=8, lr=0.03, seed=3,
+                         progress=False, path=tmp_path / "m.safetensors")
+    meta = read_metadata(result.path)
+    assert meta["validation_trajectories"] == held_out and meta["calibrated_on"] == "validation"
+    assert loss_curve_path(result.path).stat().st_size > 10_000  # the figure beside the checkpoint
+    from dks_gym.models.checkpoint import read_checkpoint
+
+    history = read_checkpoint(result.path).training["validation"]
+    assert history.shape[1] == 5 and len(history) >= 10
+    best = int(torch.argmin(history[:, 1]))
+    assert meta["best_step"] == int(history[best, 0]) < 60
+    # The weights stored (and returned) are the best ones: their validation loss is the history's minimum.
+    monitor = ValidationMonitor(ds, held_out, 1, eval_every=1, patience=0, batch_size=8, seed=3)
+    loaded = load_model("burgers", "mlp", R, "lite", path=result.path)
+    assert float(monitor.loss(loaded)[0]) == pytest.approx(float(history[best, 1]), rel=1e-5)
+    assert float(monitor.loss(result.model)[0]) == pytest.approx(float(history[best, 1]), rel=1e-5)
+
+
+def test_early_stopping_ends_a_run_that_stopped_improving(ds, tmp_path, monkeypatch):
+    from dks_gym.models import training
+
+    # A learning rate too small to move the loss by 1 % between validations: patience 2 ends it at the third.
+    frozen = training.TrainingSchedule(400, 8, 1e-9, validation_fraction=0.1, validations=40, patience=2)
+    monkeypatch.setitem(training.TRAINING_SCHEDULES["lite"], "burgers", frozen)
+    result = train_model("burgers", "koopman", R, "lite", dataset=ds, progress=False, path=tmp_path / "k.safetensors")
+    meta = read_metadata(result.path)
+    assert meta["stopped_early"] and meta["complete"] and result.steps_done == 30
+    again = train_model("burgers", "koopman", R, "lite", dataset=ds, progress=False, path=tmp_path / "k.safetensors")
+    assert again.loaded_only and again.steps_done == 30
+
+
+def test_calibrated_q_is_the_true_process_noise_of_a_linear_gaussian_model():
+    """z_{k+1} = A z_k + w_k, w ~ N(0, Q): with an exact model (identity encoder and decoder, forecast A z)
+    the calibrated Q is the sample covariance of w, within its sampling error."""
+    from dks_gym.models.latent_model import LatentModel
+    from dks_gym.models.presets import benchmark_shape
+    from dks_gym.models.training import calibrate
+
+    r, n_traj, n_t = 4, 40, 101
+    rng = np.random.default_rng(0)
+    A = np.linalg.qr(rng.standard_normal((r, r)))[0] * 0.95
+    L = np.tril(rng.standard_normal((r, r))) * 0.1
+    Q_true = L @ L.T
+    shape = benchmark_shape("burgers")
+
+    class Linear(LatentModel):
+        def encode(self, x, mu):
+            return torch.as_tensor(x)[:, 0, :r].double()
+
+        def decode(self, z, mu):
+            out = torch.zeros(z.shape[0], 1, shape.grid[0], dtype=torch.float64)
+            out[:, 0, :r] = z
+            return out
+
+        def forecast(self, z, mu):
+            return z @ torch.as_tensor(A).T
+
+    class Trajectories:
+        def __init__(self) -> None:
+            self.data = np.zeros((n_traj, n_t, 1, shape.grid[0]))
+            for i in range(n_traj):
+                z = rng.standard_normal(r)
+                for k in range(n_t):
+                    self.data[i, k, 0, :r] = z
+                    z = A @ z + L @ rng.standard_normal(r)
+
+        def params(self, split):
+            return np.linspace(0.1, 0.9, n_traj)
+
+        def read(self, split, i, *selection):
+            return self.data[i][selection]
+
+    model = Linear(shape, r)
+    data = Trajectories()
+    cal = calibrate(model, data, range(n_traj))
+    n = n_traj * (n_t - 1)
+    se = np.sqrt((Q_true ** 2 + np.outer(np.diag(Q_true), np.diag(Q_true))) / n)  # std error of each entry
+    assert np.all(np.abs(cal["Q"].numpy() - Q_true) < 4 * se)
+    assert float(cal["reconstruction_variance"][0, r:].abs().max()) == 0.0  # cells the decoder gets exactly
+    # P0: the spread of the first states around their mean, plus Q (and a 1e-6 floor).
+    z0 = data.data[:, 0, 0, :r]
+    spread = (z0 - z0.mean(0)).T @ (z0 - z0.mean(0)) / n_traj + cal["Q"].numpy()
+    np.testing.assert_allclose(cal["P0"].numpy(), spread, rtol=1e-5, atol=1e-6 * np.trace(spread) / r * 1.01)

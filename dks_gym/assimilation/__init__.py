@@ -4,12 +4,21 @@
 * :class:`Assimilation`: the batched core (forecast, update, decode, score) the wrappers step;
 * :func:`run_episodes`: the one loop over whole episodes (the envs' layouts, a fixed layout per episode
   or a layout chosen per step), and :func:`run_assimilation` over a dataset split;
-* :class:`AssimilationConfig`, :class:`AssimilationResult`: an evaluation run's settings and measurements.
+* :class:`AssimilationConfig`, :class:`AssimilationResult`: an evaluation run's settings and measurements;
+* :mod:`~dks_gym.assimilation.uncertainty`: the predictive std of the decoded estimate (``estimate_std``),
+  :func:`reconstruction_variance` and the scores (:func:`gaussian_scores`, :func:`gaussian_crps`).
 """
 
 from .config import DIVERGENCE_POLICIES, FILTERS, INITIAL_CONDITIONS, AssimilationConfig, FilterConfig
 from .core import Assimilation, Snapshot, approximate_initial_latent, field_errors, resolve_model
 from .episodes import AssimilationResult, close_envs, episode_envs, run_assimilation, run_dataset, run_episodes
+from .uncertainty import (
+    ensemble_variance,
+    gaussian_crps,
+    gaussian_scores,
+    jacobian_variance,
+    reconstruction_variance,
+)
 
 __all__ = [
     "DIVERGENCE_POLICIES",
@@ -22,8 +31,13 @@ __all__ = [
     "Snapshot",
     "approximate_initial_latent",
     "close_envs",
+    "ensemble_variance",
     "episode_envs",
     "field_errors",
+    "gaussian_crps",
+    "gaussian_scores",
+    "jacobian_variance",
+    "reconstruction_variance",
     "resolve_model",
     "run_assimilation",
     "run_dataset",

@@ -24,6 +24,9 @@ from ..names import FILTERS
 
 INITIAL_CONDITIONS = ("approximate", "exact")
 DIVERGENCE_POLICIES = ("raise", "reset")
+#: Named choices of Q and P0: the paper's (1e-4 I, 1.0 I), or measured on the model's own errors (calibrated).
+CALIBRATION_CHOICES = ("paper", "calibrated")
+PAPER_Q, PAPER_P0 = 1e-4, 1.0
 
 
 @dataclass(frozen=True)
@@ -32,8 +35,12 @@ class FilterConfig:
 
     ``kind``: one of :data:`FILTERS`. ``initial``: "approximate" (mean encoded first frame of the training
     trajectories) or "exact" (the encoded true first frame). ``P0``, ``Q``: initial and process-noise
-    covariances (a variance times I, or a (B,), (r, r) or (B, r, r) tensor); R = sigma^2 I comes from the
-    env. EnKF: ``n_members``, ``inflation`` (multiplicative, 1 = none), ``localization`` (a hook
+    covariances (a variance times I, or a (B,), (r, r) or (B, r, r) tensor), or by name: "paper" (Q = 1e-4 I,
+    P0 = I, the paper's) or "calibrated" (measured on the model's own errors when it was trained,
+    ``model.calibration``: Q its latent one-step residual covariance on held-out trajectories, P0 the spread
+    of the encoded first frames around the approximate initial condition, or Q for the exact one). The
+    default is "calibrated": with the paper's values a converged model's EKF is worse than its forward run
+    (docs/filters.md). R = sigma^2 I comes from the env. EnKF: ``n_members``, ``inflation`` (multiplicative, 1 = none), ``localization`` (a hook
     ``(C_zy, C_yy) -> (C_zy, C_yy)``, e.g. :func:`~dks_gym.filters.schur_localization`).
     ``on_divergence``: "raise" stops at a non-finite estimate, "reset" restarts the diverged elements.
     ``seed``: seeds the EnKF's draws when the caller gives none.
@@ -41,8 +48,8 @@ class FilterConfig:
 
     kind: str = "ekf"
     initial: str = "approximate"
-    P0: float | torch.Tensor = 1.0
-    Q: float | torch.Tensor = 1e-4
+    P0: float | str | torch.Tensor = "calibrated"
+    Q: float | str | torch.Tensor = "calibrated"
     n_members: int = 20
     inflation: float = 1.0
     localization: Localization | None = None
@@ -55,8 +62,14 @@ class FilterConfig:
             raise ValueError(f"unknown filter {self.kind!r}{hint}; choose one of {', '.join(FILTERS)}")
         if self.initial not in INITIAL_CONDITIONS:
             raise ValueError(f"unknown initial condition {self.initial!r}; choose 'approximate' or 'exact'")
-        check_covariance_spec(self.P0, "P0", definite=True)
-        check_covariance_spec(self.Q, "Q", definite=False)
+        for name, definite in (("P0", True), ("Q", False)):
+            value = getattr(self, name)
+            if isinstance(value, str):
+                if value not in CALIBRATION_CHOICES:
+                    raise ValueError(f"{name} must be a covariance or one of "
+                                     f"{', '.join(map(repr, CALIBRATION_CHOICES))}, got {value!r}")
+            else:
+                check_covariance_spec(value, name, definite=definite)
         n = self.n_members
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 2:
             raise ValueError(f"n_members must be an integer >= 2 (an ensemble needs two members "
@@ -78,12 +91,41 @@ class FilterConfig:
         """False for the forward run."""
         return self.kind != "forward"
 
-    def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int) -> EKF | EnKF:
-        """The filter object (the forward run is the EKF loop stepped with the update off)."""
+    def process_noise(self, model: Any) -> float | torch.Tensor:
+        """``Q`` as the filters take it, a named choice resolved for ``model``."""
+        if isinstance(self.Q, str):
+            return PAPER_Q if self.Q == "paper" else _calibrated(model, "Q")
+        return self.Q
+
+    def initial_covariance(self, model: Any) -> float | torch.Tensor:
+        """``P0`` as the filters take it, a named choice resolved for ``model`` and the initial condition."""
+        if isinstance(self.P0, str):
+            if self.P0 == "paper":
+                return PAPER_P0
+            return _calibrated(model, "P0_exact" if self.initial == "exact" else "P0")
+        return self.P0
+
+    def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int, model: Any = None) -> EKF | EnKF:
+        """The filter object (the forward run is the EKF loop stepped with the update off); ``model``
+        resolves ``Q="calibrated"``."""
+        Q = self.process_noise(model)
+        if isinstance(Q, torch.Tensor):
+            Q = Q.to(sigma)
         if self.kind == "enkf":
-            return EnKF(dynamics, sigma=sigma, Q=self.Q, n_members=self.n_members, inflation=self.inflation,
+            return EnKF(dynamics, sigma=sigma, Q=Q, n_members=self.n_members, inflation=self.inflation,
                         localization=self.localization, generator=seed, on_divergence=self.on_divergence)
-        return EKF(dynamics, sigma=sigma, Q=self.Q, on_divergence=self.on_divergence)
+        return EKF(dynamics, sigma=sigma, Q=Q, on_divergence=self.on_divergence)
+
+
+def _calibrated(model: Any, name: str) -> torch.Tensor:
+    value = getattr(model, "calibration", {}).get(name)
+    if value is None:
+        raise ValueError(
+            f"this {getattr(model, 'kind', '')} model has no calibrated {name} (it was trained by an older dks-gym, "
+            "or built without training): retrain it (dks-gym train ... --restart, or load_model(..., "
+            "train_if_missing=True) for a cached one), or set Q='paper' and P0='paper' (the paper's 1e-4 I and I) "
+            "or your own values in the FilterConfig")
+    return value
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,9 @@
 
 :class:`Assimilation` is the only place where a filter meets a model: it builds the filter for the
 current episodes of B ``SensingEnv`` objects (their mu, noise sigma, sensors and initial condition),
-and each :meth:`Assimilation.step` forecasts, updates with the readings, decodes and scores (Eqs. 13-18).
+and each :meth:`Assimilation.step` forecasts, updates with the readings, decodes and scores (Eqs. 13-18);
+with ``uncertainty=True`` it also decodes the filter's covariance into a per-cell predictive standard
+deviation and scores it (:mod:`dks_gym.assimilation.uncertainty`).
 The wrappers call it once per env step; :func:`~dks_gym.assimilation.run_episodes` calls it over whole
 episodes. Its filter state is private: callers see snapshots and the belief.
 """
@@ -23,6 +25,7 @@ from ..filters import EKF, EnKF, LatentDynamics, bind_param
 from ..models import MODEL_KINDS, load_model, model_device
 from ..threads import torch_threads
 from .config import FilterConfig
+from .uncertainty import ensemble_variance, gaussian_scores, jacobian_variance
 
 # Per model, per dataset file: the approximate initial latent state (it costs one pass over the train split).
 _APPROXIMATE_CACHE: "weakref.WeakKeyDictionary[Any, dict[str, torch.Tensor]]" = weakref.WeakKeyDictionary()
@@ -87,6 +90,12 @@ class Snapshot:
     normalized_mse: np.ndarray  # (B,) over standardized channels
     latent_mean: np.ndarray  # (B, r)
     diagnostics: dict[str, np.ndarray] = field(default_factory=dict)  # gain_norm, spread, (EKF) forecast_norm
+    # With uncertainty (else None): the predictive std of every cell (B, C, *grid), physical units, and its
+    # scores over the scored channels (B,): 95 % coverage, mean NEES per cell, mean Gaussian CRPS.
+    estimate_std: torch.Tensor | None = None
+    coverage: np.ndarray | None = None
+    nees: np.ndarray | None = None
+    crps: np.ndarray | None = None
 
 
 class _SensorRows:
@@ -101,14 +110,29 @@ class _SensorRows:
 
 
 class Assimilation:
-    """One latent model and one batched filter following B sensing episodes (the B = 1 case is a wrapper)."""
+    """One latent model and one batched filter following B sensing episodes (the B = 1 case is a wrapper).
+
+    ``uncertainty`` (default True): every snapshot also holds ``estimate_std``, the predictive standard
+    deviation of every cell, and its scores (coverage, NEES, CRPS); it costs r decoder Jacobian-vector
+    products per element and step (EKF, forward run) or one decode per member (EnKF); False skips it.
+    ``reconstruction_var``: the decoder's reconstruction-error variance per cell, (C, *grid) in physical
+    units squared (:func:`~dks_gym.assimilation.reconstruction_variance`) or one number for every cell,
+    added to the filter's variance; default: the model's own, measured on held-out trajectories when it
+    was trained (``model.calibration["reconstruction_variance"]``), else zero; ``0`` switches it off.
+    """
 
     def __init__(self, model: Any, config: FilterConfig, *, device: str | torch.device | None = None,
-                 dtype: torch.dtype = torch.float32) -> None:
+                 dtype: torch.dtype = torch.float32, uncertainty: bool = True,
+                 reconstruction_var: Any = None) -> None:
         self.model = model
         self.config = config
         self.device = model_device(model) if device is None else torch.device(device)
         self.dtype = dtype
+        self.uncertainty = bool(uncertainty)
+        if reconstruction_var is None:
+            reconstruction_var = (getattr(model, "calibration", None) or {}).get("reconstruction_variance")
+        self.reconstruction_var = None if reconstruction_var is None else _check_reconstruction_var(
+            model, reconstruction_var, self.device, self.dtype)
         self._sensors = _SensorRows()
         self._filter: EKF | EnKF | None = None
         self._mu: torch.Tensor | None = None
@@ -141,13 +165,15 @@ class Assimilation:
         self._sensors.current = np.stack([e.sensors for e in envs]) if sensors is None else np.asarray(sensors)
         # A noise-free env (noise_level=0) still needs a positive R for the gain to exist.
         sigma = torch.tensor([max(e.sigma, 1e-12) for e in envs], dtype=self.dtype, device=self.device)
-        self._filter = self.config.make(self._dynamics(envs[0].benchmark.observed_channel), sigma, seed)
+        self._filter = self.config.make(self._dynamics(envs[0].benchmark.observed_channel), sigma, seed, self.model)
         if self.config.initial == "exact":
             with torch.no_grad():
                 z0 = self.model.encode(self._truth(envs), self._mu)
         else:
             z0 = approximate_initial_latent(self.model, envs[0].dataset).expand(len(envs), -1)
-        self._filter.reset(z0.to(self.device, self.dtype).clone(), self.config.P0)
+        P0 = self.config.initial_covariance(self.model)
+        self._filter.reset(z0.to(self.device, self.dtype).clone(),
+                           P0.to(self.device, self.dtype) if isinstance(P0, torch.Tensor) else P0)
         return self._snapshot(envs)
 
     @torch_threads("assimilate")
@@ -174,12 +200,38 @@ class Assimilation:
                         mse=field_errors(estimate, truth, bench.scored_indices).cpu().numpy(),
                         normalized_mse=field_errors(estimate, truth, bench.scored_indices, std).cpu().numpy(),
                         latent_mean=self._filter.mean.detach().cpu().numpy())
+        if self.uncertainty:
+            snap.estimate_std = self.predictive_std(estimate)
+            scores = gaussian_scores(estimate, snap.estimate_std, truth, bench.scored_indices,
+                                     envs[0].dataset.stats_std)
+            snap.coverage, snap.nees, snap.crps = scores["coverage"], scores["nees"], scores["crps"]
         if with_diagnostics:
             d = self._filter.diagnostics
             snap.diagnostics = {"gain_norm": d.gain_norm[-1].cpu().numpy(), "spread": d.spread[-1].cpu().numpy()}
             if isinstance(self._filter, EKF):  # the EnKF uses no forecast Jacobian
                 snap.diagnostics["forecast_norm"] = d.forecast_norm[-1].cpu().numpy()
         return snap
+
+    def predictive_std(self, estimate: torch.Tensor | None = None) -> torch.Tensor:
+        """The predictive standard deviation of every decoded cell, (B, C, *grid), physical units.
+
+        EKF and forward run: ``sqrt(diag(G P G^T) + reconstruction_var)`` with ``G`` the decoder Jacobian at
+        the filter mean; EnKF: ``sqrt(var of the decoded members + reconstruction_var)``. ``estimate``: the
+        decoded filter mean, when the caller has it already.
+        """
+        if self._filter is None:
+            raise RuntimeError("call start() before predictive_std()")
+        with torch.no_grad():
+            if estimate is None:
+                estimate = self.model.decode(self._filter.mean.detach(), self._mu)
+            if isinstance(self._filter, EnKF):
+                var = ensemble_variance(self.model, self._filter.ensemble, self._mu, center=estimate)
+            else:
+                var = jacobian_variance(self.model, self._filter.mean, self._mu, self._filter.cov)
+            var = var.reshape(estimate.shape)
+            if self.reconstruction_var is not None:
+                var = var + self.reconstruction_var.to(var)
+            return var.clamp_min(0.0).sqrt()
 
     def truth(self, envs: Sequence[SensingEnv]) -> np.ndarray:
         """The envs' true fields (B, C, *grid) as the core scores them, float32."""
@@ -198,3 +250,19 @@ class Assimilation:
                 if isinstance(self._filter, EKF) else None,
                 "step_seconds": np.asarray(d.wall_time, dtype=np.float64),
                 "divergence_resets": d.stacked("reset").sum(0).cpu().numpy().astype(np.int64)}
+
+
+def _check_reconstruction_var(model: Any, value: Any, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """``value`` as a (C, *grid) tensor (a number: the same for every cell), checked: finite, non-negative,
+    the model's field shape."""
+    t = torch.as_tensor(np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value,
+                                   dtype=np.float64))
+    expected = (int(model.n_fields), *model.grid) if hasattr(model, "grid") else tuple(t.shape)
+    if t.ndim == 0:
+        t = t.expand(expected).clone()
+    if tuple(t.shape) != expected:
+        raise ValueError(f"reconstruction_var must have the decoded field's shape {expected} (C, *grid), "
+                         f"got {tuple(t.shape)}; see dks_gym.assimilation.reconstruction_variance")
+    if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+        raise ValueError("reconstruction_var must be finite and non-negative (a variance per cell)")
+    return t.to(device=device, dtype=dtype)

@@ -14,7 +14,8 @@ unless it is the forward run, by an update with that frame's readings. The senso
 placement harness (``dks_gym_agents.scoring``) over (layout, trajectory) pairs and adaptive policies.
 Per episode and frame it records the Eq. 18 MSE of the decoded mean (frame 0 is the initial estimate),
 the forecast Jacobian norm ``||F_k||_2`` of each step (EKF and forward run) and the wall time of each
-batched filter step (CUDA synchronized).
+batched filter step (CUDA synchronized); with ``uncertainty=True`` (default) also the scores of the
+predictive std per frame (95 % coverage, mean NEES per cell, Gaussian CRPS) and the final std field.
 """
 
 from __future__ import annotations
@@ -50,6 +51,12 @@ class AssimilationResult:
     final_truth: np.ndarray  # (B, C, *grid)
     wall_time: float  # seconds for the whole run (readings, filter, decoding, errors)
     extras: dict[str, Any] = field(default_factory=dict)
+    # With uncertainty (else None), over the scored channels, (B, n_t) like step_mse: the fraction of cells
+    # inside the central 95 % interval, the mean NEES per cell, the mean Gaussian CRPS (physical units).
+    step_coverage: np.ndarray | None = None
+    step_nees: np.ndarray | None = None
+    step_crps: np.ndarray | None = None
+    final_estimate_std: np.ndarray | None = None  # (B, C, *grid) predictive std at the final frame
 
     @property
     def final_mse(self) -> np.ndarray:
@@ -83,6 +90,25 @@ class AssimilationResult:
     @property
     def batch(self) -> int:
         return len(self.trajectories)
+
+    def _final_mean(self, name: str) -> float | None:
+        values = getattr(self, name)
+        return None if values is None else float(np.mean(values[:, -1]))
+
+    @property
+    def final_coverage_mean(self) -> float | None:
+        """95 % coverage at the final frame, mean over trajectories (None without uncertainty)."""
+        return self._final_mean("step_coverage")
+
+    @property
+    def final_nees_mean(self) -> float | None:
+        """Mean NEES per cell at the final frame, mean over trajectories (None without uncertainty)."""
+        return self._final_mean("step_nees")
+
+    @property
+    def final_crps_mean(self) -> float | None:
+        """Gaussian CRPS at the final frame, mean over trajectories (None without uncertainty)."""
+        return self._final_mean("step_crps")
 
 
 def episode_envs(dataset: Dataset, trajectories: np.ndarray, noise_seeds: np.ndarray, *, split: str,
@@ -154,10 +180,14 @@ def run_episodes(
     dtype: torch.dtype = torch.float32,
     progress: bool = False,
     description: str | None = None,
+    uncertainty: bool = True,
+    reconstruction_var: Any = None,
 ) -> AssimilationResult:
     """Filter B reset episodes ``envs`` to their last frame with ``config.filter`` as one batch.
 
     ``layouts`` or ``decide`` (at most one) say which sensors the filter reads (see the module docstring).
+    ``uncertainty``, ``reconstruction_var``: see :class:`~dks_gym.assimilation.Assimilation` (False skips
+    the predictive std and its scores; the result's ``step_coverage``, ``step_nees``, ``step_crps`` are None).
     ``extras`` of the result: ``layouts`` (the fixed layouts, or (B, n_t - 1, m) the layouts read at frames
     1..n_t-1 with ``decide``) and, with ``decide``, ``decision_seconds`` (n_t - 1,).
     """
@@ -175,11 +205,16 @@ def run_episodes(
     n_t = envs[0].dataset.n_frames
     if n_t < 2:
         raise ValueError(f"{envs[0].dataset.path} has {n_t} frame(s); assimilation needs at least 2")
-    core = Assimilation(model, config.filter, dtype=dtype)
+    core = Assimilation(model, config.filter, dtype=dtype, uncertainty=uncertainty,
+                        reconstruction_var=reconstruction_var)
     snap = core.start(envs, seed=config.filter.seed, sensors=layouts)
     batch = len(envs)
     step_mse = np.empty((batch, n_t), dtype=np.float64)
     step_mse[:, 0] = snap.mse
+    scores = {name: np.empty((batch, n_t), dtype=np.float64) for name in ("coverage", "nees", "crps")} \
+        if uncertainty else {}
+    for name, values in scores.items():
+        values[:, 0] = getattr(snap, name)
     extras: dict[str, Any] = {}
     if decide is not None:
         chosen = np.empty((batch, n_t - 1, envs[0].n_sensors), dtype=np.int64)
@@ -204,6 +239,8 @@ def run_episodes(
                 sensors = layouts
         snap = core.step(envs, readings, sensors)
         step_mse[:, k] = snap.mse
+        for name, values in scores.items():
+            values[:, k] = getattr(snap, name)
     bar.close()
     if decide is not None:
         extras = {"layouts": chosen, "decision_seconds": decision_seconds}
@@ -218,6 +255,8 @@ def run_episodes(
         divergence_resets=history["divergence_resets"],
         final_estimate=snap.estimate.cpu().numpy().astype(np.float32), final_truth=core.truth(envs),
         wall_time=time.perf_counter() - start, extras=extras,
+        step_coverage=scores.get("coverage"), step_nees=scores.get("nees"), step_crps=scores.get("crps"),
+        final_estimate_std=None if snap.estimate_std is None else snap.estimate_std.cpu().numpy().astype(np.float32),
     )
 
 
@@ -234,6 +273,8 @@ def run_assimilation(
     dtype: torch.dtype = torch.float32,
     progress: bool = False,
     description: str | None = None,
+    uncertainty: bool = True,
+    reconstruction_var: Any = None,
     **overrides: Any,
 ) -> AssimilationResult:
     """Run ``config.filter`` for ``model`` over the trajectories of ``dataset``'s split as one batch.
@@ -241,7 +282,8 @@ def run_assimilation(
     Every model and filter reads the same noise realization (SPEC section 2, keyed by ``noise_seed``).
     ``model`` is a trained latent model (see :mod:`dks_gym.models`) on the device to run on;
     ``trajectories`` defaults to the whole split; keyword ``overrides`` change settings of ``config`` or
-    of its filter (e.g. ``kind="enkf", n_members=40``).
+    of its filter (e.g. ``kind="enkf", n_members=40``). ``uncertainty``, ``reconstruction_var``: see
+    :func:`run_episodes`.
     """
     config = config or AssimilationConfig()
     if overrides:
@@ -258,14 +300,15 @@ def run_assimilation(
             f"got {trajectories!r}"
         )
     return run_dataset(model, ds, index, np.full(len(index), config.noise_seed), config, dtype=dtype,
-                       progress=progress, description=description, n_sensors=config.n_sensors)
+                       progress=progress, description=description, uncertainty=uncertainty,
+                       reconstruction_var=reconstruction_var, n_sensors=config.n_sensors)
 
 
 def run_dataset(model: Any, dataset: Dataset, trajectories: np.ndarray, noise_seeds: np.ndarray,
                 config: AssimilationConfig, *, split: str | None = None, share: bool = False,
                 layouts: np.ndarray | None = None, decide: Callable[[np.ndarray], np.ndarray] | None = None,
                 dtype: torch.dtype = torch.float32, progress: bool = False, description: str | None = None,
-                **env_kwargs: Any) -> AssimilationResult:
+                uncertainty: bool = True, reconstruction_var: Any = None, **env_kwargs: Any) -> AssimilationResult:
     """:func:`run_episodes` over episodes (trajectory, noise seed) of ``split`` (default ``config.split``):
     builds their envs (:func:`episode_envs`), runs them and closes them; ``wall_time`` includes the set-up."""
     start = time.perf_counter()
@@ -273,7 +316,8 @@ def run_dataset(model: Any, dataset: Dataset, trajectories: np.ndarray, noise_se
                         noise_level=config.noise_level, share=share, **env_kwargs)
     try:
         result = run_episodes(model, envs, config, layouts=layouts, decide=decide, dtype=dtype, progress=progress,
-                              description=description)
+                              description=description, uncertainty=uncertainty,
+                              reconstruction_var=reconstruction_var)
     finally:
         close_envs(envs)
     result.wall_time = time.perf_counter() - start

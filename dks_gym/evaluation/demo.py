@@ -3,7 +3,7 @@
 Generates the Burgers ``paper`` dataset if it is missing (seconds), trains the four ``lite`` models if
 their checkpoints are missing (minutes; reused afterwards), runs the forward run, the EKF and the EnKF
 (n = 20) of every model over the 10 test trajectories (20% noise, 16 sensors, approximate initial
-condition, r = 32), prints the table of final-time errors and writes one figure (final MSE of each model
+condition, r = 32, the default calibrated Q and P0), prints the table of final-time errors and writes one figure (final MSE of each model
 and filter divided by the MLP forward-run error, as in the paper's bar charts) and the results file.
 """
 
@@ -20,8 +20,8 @@ from .results import make_record, new_results, save_results
 
 DEMO_BENCHMARK = "burgers"
 DEMO_FILTERS = ("forward", "ekf", "enkf")
-#: Measured: `dks-gym train burgers --model all --preset lite` on one CPU core (docs/reproduce.md).
-DEMO_TRAIN_MINUTES_PER_MODEL = "0.5"
+#: Measured: `dks-gym train burgers --model all --preset lite` on one CPU core (docs/training.md).
+DEMO_TRAIN_MINUTES_PER_MODEL = "6-8"
 
 
 def _fmt(mean: float | None, std: float | None) -> str:
@@ -60,11 +60,11 @@ def first_run_message() -> str:
                  if not checkpoint_path(DEMO_BENCHMARK, kind, "lite", 32, 1, data_preset="paper").exists()]
     if untrained:
         todo.append(f"training the {'four' if len(untrained) == 4 else ', '.join(untrained)} lite "
-                    f"model{'s' if len(untrained) > 1 else ''} (about {DEMO_TRAIN_MINUTES_PER_MODEL} min each on "
-                    "one CPU core)")
+                    f"model{'s' if len(untrained) > 1 else ''} to convergence (about {DEMO_TRAIN_MINUTES_PER_MODEL} "
+                    "min for each neural one on one CPU core, seconds for pDMD)")
     run = "then running the forward run, the EKF and the EnKF of each model on the 10 test trajectories"
     if not todo:
-        return f"dks-gym demo: data and models found in {data_home()}; {run} (about 1 min)."
+        return f"dks-gym demo: data and models found in {data_home()}; {run} (about 1.5 min)."
     return (f"dks-gym demo, first run: {' and '.join(todo)}, {run}. Later runs reuse the data and the models "
             f"kept in {data_home()}.")
 
@@ -102,16 +102,18 @@ def run_demo(
     trained = time.perf_counter()
 
     records = []
+    base = AssimilationConfig()  # the defaults a user meets: calibrated Q and P0
     jobs = [(kind, filt) for filt in DEMO_FILTERS for kind in MODEL_ORDER]
     bar = tqdm(jobs, desc="assimilating (model x filter)", unit="run", disable=not progress, dynamic_ncols=True)
     for kind, filt in bar:
         bar.set_postfix_str(f"{kind} {filt}", refresh=False)
-        result = run_assimilation(models[kind], ds, AssimilationConfig().replace(kind=filt), progress=progress,
+        result = run_assimilation(models[kind], ds, base.replace(kind=filt), progress=progress,
                                   description=f"{kind} {filt}")
         records.append(make_record(result, experiment="demo", keep_curves=False))
     bar.close()
 
-    config = {"experiments": ["demo"], "n_sensors": 16, "P0": 1.0, "Q": 1e-4, "noise_seed": 0, "filter_seed": 0,
+    config = {"experiments": ["demo"], "n_sensors": base.n_sensors, "P0": base.filter.P0, "Q": base.filter.Q,
+              "noise_seed": base.noise_seed, "filter_seed": base.filter.seed,
               "split": "test", "n_test": ds.n_trajectories("test"), "n_frames": ds.n_frames, "dt": ds.dt,
               "t0": float(ds.time[0]), "param_name": ds.param_name, "observed_channel": ds.observed_channel,
               "scored_channels": list(ds.scored_channels), "device": device, "dtype": "float32",
@@ -128,7 +130,8 @@ def run_demo(
                                         "(r=32, 16 sensors, 20% noise, approximate IC)")
     log("")
     log(f"Burgers test split ({ds.n_trajectories('test')} trajectories), final-time MSE (mean ± std over "
-        "trajectories), lite models, r=32, 16 sensors, 20% noise, approximate initial condition")
+        "trajectories), lite models, r=32, 16 sensors, 20% noise, approximate initial condition, calibrated "
+        "Q and P0 (the paper's Q = 1e-4 I: `dks-gym reproduce burgers`)")
     log(demo_table(records))
     log("")
     log(f"figure: {figure}\nresults: {out / 'results.json'}\n"

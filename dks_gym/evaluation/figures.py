@@ -7,7 +7,9 @@
   thick line, one column per model and one row per estimate (Figs. 7, 9);
 * :func:`timing_figure`: wall time per DA step per model and filter (Figs. 4, 6);
 * :func:`reconstruction_figure`: truth, estimate and error at the final time for one test trajectory,
-  one model per row (Fig. 8 and the 2D/3D reconstructions; 3D shows the middle z slice).
+  one model per row (Fig. 8 and the 2D/3D reconstructions; 3D shows the middle z slice);
+* :func:`uncertainty_figure`: the predictive std of an estimate at chosen time steps: in 1D the estimate,
+  the truth and the +-2 std band, in 2D (3D: the middle z slice) the std map beside the absolute-error map.
 
 Every function writes a PNG and returns its path; matplotlib runs headless (Agg).
 """
@@ -247,6 +249,76 @@ def reconstruction_figure(
     return _save(fig, path)
 
 
+def uncertainty_figure(
+    estimates: np.ndarray,
+    stds: np.ndarray,
+    truths: np.ndarray,
+    coords: Sequence[np.ndarray],
+    path: str | Path,
+    *,
+    steps: Sequence[int] | None = None,
+    channel: int = 0,
+    channel_name: str = "",
+    fluid_mask: np.ndarray | None = None,
+    title: str | None = None,
+) -> Path:
+    """The estimate's predictive std at K chosen time steps of one trajectory.
+
+    ``estimates``, ``stds``, ``truths``: (K, C, *grid), e.g. ``info["estimate"]``, ``info["estimate_std"]``
+    and ``env.unwrapped.true_state`` collected at those steps; ``steps`` (K,) labels them (the frame index).
+    1D: one panel per step with the truth, the estimate and the band estimate +- 2 std (about 95 %). 2D and
+    3D (middle z slice): one row per step, the std map beside the absolute-error map on one colour scale, so
+    that an honest std looks like the error it claims to bound.
+    """
+    plt = _pyplot()
+    est, std, true = (np.asarray(a, dtype=np.float64) for a in (estimates, stds, truths))
+    if not (est.shape == std.shape == true.shape) or est.ndim < 3 or len(est) == 0:
+        raise ValueError(f"estimates, stds and truths must share one (K, C, *grid) shape with K >= 1, got "
+                         f"{est.shape}, {std.shape}, {true.shape}")
+    if np.any(std < 0) or not np.all(np.isfinite(std)):
+        raise ValueError("stds must be finite and non-negative")
+    n = len(est)
+    steps = list(range(n)) if steps is None else list(steps)
+    if len(steps) != n:
+        raise ValueError(f"got {len(steps)} step labels for {n} time steps")
+    name = channel_name or "value"
+    if est.ndim == 3:  # 1D fields
+        x = np.asarray(coords[0])
+        fig, axes = plt.subplots(1, n, figsize=(3.4 * n + 0.4, 3.0), squeeze=False, sharey=True)
+        for ax, k, e, s, t in zip(axes[0], steps, est[:, channel], std[:, channel], true[:, channel]):
+            ax.fill_between(x, e - 2 * s, e + 2 * s, color=MODEL_COLORS["koopman"], alpha=0.25, lw=0,
+                            label="estimate +- 2 std")
+            ax.plot(x, t, color="k", lw=1.4, label="truth")
+            ax.plot(x, e, color=MODEL_COLORS["koopman"], lw=1.1, ls="--", label="estimate")
+            inside = float(np.mean(np.abs(t - e) <= 2 * s))
+            ax.set_title(f"frame {k}: {100 * inside:.0f}% inside", fontsize=9)
+            ax.set_xlabel("x")
+            ax.grid(alpha=0.3)
+        axes[0][0].set_ylabel(name)
+        axes[0][0].legend(fontsize=7)
+    else:
+        mask = None if fluid_mask is None else _field_slice(np.asarray(fluid_mask))
+        aspect = float(np.ptp(coords[1]) / max(np.ptp(coords[0]), 1e-12))
+        extent = [coords[0][0], coords[0][-1], coords[1][0], coords[1][-1]]
+        fig, axes = plt.subplots(n, 2, figsize=(7.6, n * (3.3 * aspect + 0.7)), squeeze=False)
+        for i, k in enumerate(steps):
+            s = _field_slice(std[i, channel])
+            err = np.abs(_field_slice(est[i, channel]) - _field_slice(true[i, channel]))
+            hi = max(float(np.max(s)), float(np.max(err))) or 1.0
+            for j, (label, data) in enumerate(((f"{name} std", s), (f"|{name} error|", err))):
+                shown = np.where(mask, data, np.nan) if mask is not None else data
+                im = axes[i][j].imshow(shown.T, origin="lower", extent=extent, cmap="magma", vmin=0.0, vmax=hi,
+                                       aspect="equal")
+                axes[i][j].set_title(f"frame {k}: {label}", fontsize=9)
+                fig.colorbar(im, ax=axes[i][j], fraction=0.046 * aspect, pad=0.02)
+        if est.ndim == 5 and title:
+            title += " (middle z slice)"
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 __all__ = [
     "FILTER_LABELS",
     "MODEL_COLORS",
@@ -257,4 +329,5 @@ __all__ = [
     "reconstruction_figure",
     "temporal_error_figure",
     "timing_figure",
+    "uncertainty_figure",
 ]

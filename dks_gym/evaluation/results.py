@@ -31,6 +31,11 @@ A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run
     wall_time                       float          seconds for the whole run
     trajectories, params            [B]            (optional) test indices and parameter values
     divergence_resets               [B]            (optional) restarts after a non-finite filter state
+    final_coverage_mean, final_nees_mean, final_crps_mean    float | null   (optional) scores of the predictive
+                                    std (``estimate_std``) at the final frame, mean over trajectories: the
+                                    fraction of scored cells inside the central 95 % interval, the mean NEES
+                                    per cell, the mean Gaussian CRPS (physical units); null without uncertainty
+    per_step_coverage_mean, per_step_nees_mean, per_step_crps_mean   [n_t] | null   (optional) the same per frame
 
 Non-finite numbers are stored as ``null`` (strict JSON). :func:`compare` pairs the records of two files
 by their key and gives the ratios B / A.
@@ -55,6 +60,8 @@ RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_
 MODELS = MODEL_KINDS
 INITIALS = ("approximate", "exact")
 _REQUIRED_TOP = ("schema", "schema_version", "benchmark", "preset", "dataset", "config", "records")
+#: The scores of the predictive std a record may hold (``final_{name}_mean``, ``per_step_{name}_mean``).
+UNCERTAINTY_SCORES = ("coverage", "nees", "crps")
 _REQUIRED_RECORD = RECORD_KEY + (
     "batch", "final_mse_mean", "final_mse_std", "per_step_mse_mean", "per_trajectory_final_mse",
     "max_forecast_norm", "da_step_seconds", "wall_time",
@@ -102,6 +109,10 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
         "params": _numbers(result.params),
         "divergence_resets": [int(n) for n in result.divergence_resets],
     }
+    for name in UNCERTAINTY_SCORES:
+        steps = getattr(result, f"step_{name}", None)
+        record[f"final_{name}_mean"] = None if steps is None else _number(np.mean(steps[:, -1]))
+        record[f"per_step_{name}_mean"] = None if steps is None else _numbers(np.mean(steps, axis=0))
     if keep_curves:
         record["per_trajectory_step_mse"] = _numbers(result.step_mse)
     return record
@@ -194,6 +205,14 @@ def validate_record(rec: Any, where: str = "record") -> None:
     for name in ("trajectories", "params", "divergence_resets"):
         if name in rec:
             _check_list(rec, name, where, batch)
+    for score in UNCERTAINTY_SCORES:
+        final, steps = f"final_{score}_mean", f"per_step_{score}_mean"
+        if not _is_number(rec.get(final)):
+            raise ResultsError(f"{where}: {final!r} must be a number or null, got {rec[final]!r}")
+        if rec.get(steps) is not None:
+            _check_list(rec, steps, where, None)
+            if len(rec[steps]) != len(rec["per_step_mse_mean"]):
+                raise ResultsError(f"{where}: {steps!r} must have one entry per frame, like 'per_step_mse_mean'")
 
 
 def validate(doc: Any) -> dict[str, Any]:
@@ -353,6 +372,7 @@ __all__ = [
     "RECORD_KEY",
     "SCHEMA",
     "SCHEMA_VERSION",
+    "UNCERTAINTY_SCORES",
     "ResultsError",
     "compare",
     "format_comparison",

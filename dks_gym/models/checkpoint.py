@@ -46,7 +46,7 @@ from .presets import MODEL_KINDS, MODEL_PRESETS, benchmark_shape
 FORMAT = "dks-gym-checkpoint"
 FORMAT_VERSION = 1
 _METADATA_KEY = "dks_gym"
-_MODEL, _OPTIMIZER, _TRAINING = "model.", "optimizer.", "training."
+_MODEL, _OPTIMIZER, _TRAINING, _CALIBRATION = "model.", "optimizer.", "training.", "calibration."
 
 
 class CheckpointMissing(FileNotFoundError):
@@ -73,6 +73,12 @@ def checkpoint_path(benchmark: Any, model: str, preset: str = "lite", r: int = 3
     name = benchmark_shape(benchmark).name
     check_model_args(model, preset, r, T)
     return models_dir() / checkpoint_name(name, model, preset, r, T, data_preset=data_preset)
+
+
+def loss_curve_path(checkpoint: Path | str) -> Path:
+    """The loss-curve figure written beside a checkpoint: ``NAME.loss.png`` for ``NAME.safetensors``."""
+    checkpoint = Path(checkpoint)
+    return checkpoint.with_name(checkpoint.stem + ".loss.png")
 
 
 def check_model_args(model: str, preset: str, r: int, T: int) -> None:
@@ -209,17 +215,23 @@ def save_checkpoint(
     *,
     optimizer_state: dict[str, Any] | None = None,
     training_tensors: dict[str, torch.Tensor] | None = None,
+    model_state: dict[str, torch.Tensor] | None = None,
 ) -> Path:
-    """Write model weights, optional Adam state and training tensors with ``metadata``, atomically."""
+    """Write model weights, optional Adam state and training tensors with ``metadata``, atomically.
+
+    ``model_state`` replaces ``model.state_dict()`` as the weights stored (the best-on-validation ones); the
+    model's ``calibration`` tensors (process noise, reconstruction variance) are stored with them."""
     from safetensors.torch import save_file
 
     path = Path(path)
     ensure_writable(path.parent)
-    tensors = {_MODEL + k: _plain(v) for k, v in model.state_dict().items()}
+    tensors = {_MODEL + k: _plain(v) for k, v in (model_state or model.state_dict()).items()}
     if optimizer_state is not None:
         tensors.update({_OPTIMIZER + k: _plain(v) for k, v in flatten_optimizer_state(optimizer_state).items()})
     for k, v in (training_tensors or {}).items():
         tensors[_TRAINING + k] = _plain(v)
+    for k, v in model.calibration.items():
+        tensors[_CALIBRATION + k] = _plain(v)
     meta = dict(metadata, saved=datetime.now(timezone.utc).isoformat(timespec="seconds"))
     with atomic_path(path) as tmp:  # an interrupted write never leaves a file that looks valid
         save_file(tensors, str(tmp), metadata={_METADATA_KEY: json.dumps(meta, sort_keys=True)})
@@ -261,6 +273,7 @@ class Checkpoint:
     model_state: dict[str, torch.Tensor]
     optimizer_state: dict[int, dict[str, torch.Tensor]] = field(default_factory=dict)
     training: dict[str, torch.Tensor] = field(default_factory=dict)
+    calibration: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
 def read_metadata(path: Path | str) -> dict[str, Any]:
@@ -289,6 +302,7 @@ def read_checkpoint(path: Path | str, *, optimizer: bool = True, training: bool 
     model_state: dict[str, torch.Tensor] = {}
     optimizer_flat: dict[str, torch.Tensor] = {}
     training_tensors: dict[str, torch.Tensor] = {}
+    calibration: dict[str, torch.Tensor] = {}
     with safe_open(str(path), framework="pt", device="cpu") as f:
         for key in f.keys():  # noqa: SIM118 (safe_open is not a mapping)
             if key.startswith(_MODEL):
@@ -297,7 +311,10 @@ def read_checkpoint(path: Path | str, *, optimizer: bool = True, training: bool 
                 optimizer_flat[key[len(_OPTIMIZER):]] = f.get_tensor(key)
             elif training and key.startswith(_TRAINING):
                 training_tensors[key[len(_TRAINING):]] = f.get_tensor(key)
-    return Checkpoint(path, metadata, model_state, unflatten_optimizer_state(optimizer_flat), training_tensors)
+            elif key.startswith(_CALIBRATION):
+                calibration[key[len(_CALIBRATION):]] = f.get_tensor(key)
+    return Checkpoint(path, metadata, model_state, unflatten_optimizer_state(optimizer_flat), training_tensors,
+                      calibration)
 
 
 def model_from_checkpoint(checkpoint: Checkpoint | Path | str, device: str | torch.device = "cpu") -> LatentModel:
@@ -320,4 +337,5 @@ def model_from_checkpoint(checkpoint: Checkpoint | Path | str, device: str | tor
             kwargs["cell_type"] = state["cell_type"].numpy()
         model = build_model(meta["benchmark"], meta["model"], r=meta["r"], preset=meta["preset"], seed=None, **kwargs)
     model.load_state_dict(state)
+    model.calibration = dict(checkpoint.calibration)
     return model.to(device).eval()

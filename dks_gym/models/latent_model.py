@@ -64,6 +64,9 @@ class LatentModel(nn.Module):
         stats_std: ArrayLike | None = None,
     ) -> None:
         super().__init__()
+        # Measured on held-out trajectories after training (models.training.calibrate): "Q", the latent
+        # one-step residual covariance (r, r), and "reconstruction_variance", per cell (C, *grid).
+        self.calibration: dict[str, torch.Tensor] = {}
         if int(r) != r or r < 1:
             raise ValueError(f"latent dimension r must be a positive integer, got {r!r}")
         self.shape = shape

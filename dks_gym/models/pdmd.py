@@ -19,13 +19,28 @@ Offline fit, in three steps:
    an ezyrb ``POD`` of rank r, without handing it the dense snapshots.
 3. Online, at a parameter mu, the interpolated coefficients z_k(mu) (Eq. A3) give the one-step
    operator A~(mu) = Z_{1:} Z_{:-1}^+ (Eq. A4), cached per mu. The forecast is A~(mu) z.
-   The pseudoinverse drops singular values of Z_{:-1} below ``pinv_rtol`` times the largest, by default
-   max(r, n_t - 1) * eps(float32): torch.linalg.pinv's default tolerance for float32, the precision of
-   the stored data. The paper uses "the standard pseudoinverse at default tolerance" without naming the
-   library; numpy's float64 default (~2e-14) keeps noise-level directions: on the paper-preset Burgers
-   data at r = 32 the POD spectrum falls to 4e-8 and Z_{:-1} has condition number ~4e7, and it gives
-   max ||A~||_2 = 307 with a diverging rollout, whereas the float32 tolerance gives 1.89 (train) and
-   1.78 (test), close to the paper's 2.18.
+
+Three ill-conditioned solves sit in that chain (on the paper-preset Burgers data at r = 32: the stacked
+coefficients have condition number ~3e9, the RBF kernel matrix ~3e18, Z_{:-1}(mu) ~1e8). Solved exactly,
+the RBF's and the cutoff of Eq. A4 moved with round-off, so that the fit and the forward run changed with
+the thread count and the BLAS build. Each is regularized by a rule relative to its own scale, far above
+round-off (float64 eps ~2e-16) and at or below the data's own precision, so that results change
+continuously with the data instead of jumping with the rounding:
+
+* ``dmd_tikhonov`` (default 1e-8): PyDMD's own Tikhonov option of the DMD, set so that its filter is
+  s / (s^2 + lambda^2) with lambda = ``dmd_tikhonov`` times the largest singular value of the stacked
+  coefficients (which reach the float32 data's noise floor near 5e-10 on Burgers);
+* ``rbf_smoothing`` (default 1e-10): the RBF's ridge (scipy's ``smoothing``), relative to the norm of the
+  kernel matrix on the zero-sum weights the interpolant uses (:func:`~dks_gym.models.rbf.kernel_scale`);
+* ``operator_tikhonov`` (default 1e-4): Eq. A4 as the Tikhonov least-squares problem
+  min_A ||Z_{1:} - A Z_{:-1}||^2 + lambda^2 ||A||^2, lambda = ``operator_tikhonov`` times the largest
+  singular value of Z_{:-1}(mu), about the relative error of the interpolated coefficients (1e-4 to 3e-4
+  on Burgers). ``pinv_rtol`` (default None) replaces it by the paper's truncated pseudoinverse with that
+  relative cutoff.
+
+The four settings are the model's state: they round-trip through ``state_dict`` (as its extra state) and
+are mirrored in the checkpoint metadata. The POD basis vectors get a fixed sign (see :func:`streamed_pod`),
+since LAPACK's choice of sign depends on the thread count and the CPU.
 
 As a latent model: encode(x) = U_r^T normalize(x), decode(z) = denormalize(U_r z), both independent of
 mu; h(z) = S decode(z) is affine with Jacobian S diag(std) U_r (:meth:`PDMD.observation_matrix`).
@@ -48,6 +63,21 @@ from .presets import BenchmarkShape
 _CONDITION_WARNING = re.compile(r"Input data condition number ([-+]?[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)")
 
 
+#: Seed of :func:`sign_reference`.
+SIGN_SEED = 20240613
+
+
+def sign_reference(n: int) -> torch.Tensor:
+    """The fixed vector g (n,) float64 that orients the POD basis: each basis vector u has g^T u > 0.
+
+    Standard normal draws of numpy's legacy ``RandomState`` (whose stream numpy keeps fixed across versions
+    and platforms). g^T u is then N(0, 1) for any unit vector u, so it is never near zero by structure, as
+    the largest entry of a mode can be (the two mirror-image extremes of an antisymmetric mode are equal
+    up to round-off); a sign flip would need |g^T u| at round-off level.
+    """
+    return torch.from_numpy(np.random.RandomState(SIGN_SEED).standard_normal(n))
+
+
 def streamed_pod(
     n_blocks: int,
     load_block: Callable[[int], torch.Tensor],
@@ -65,7 +95,9 @@ def streamed_pod(
     B = orth(Y)^T X and an SVD of the small B. Each stage is one pass over the blocks.
 
     Returns ``basis`` (N, r) with orthonormal columns, ``singular_values`` (r,), ``coefficients`` a list
-    of (M_b, r) blocks U_r^T X, ``energy`` the fraction of sum ||x||^2 captured, ``passes``.
+    of (M_b, r) blocks U_r^T X, ``energy`` the fraction of sum ||x||^2 captured, ``passes``. The sign of
+    each basis vector is fixed by :func:`sign_reference` (g^T u_j > 0), so that the result does not depend
+    on the sign LAPACK happens to pick.
     """
     if n_blocks < 1:
         raise ValueError("streamed_pod needs at least one block of snapshots")
@@ -99,7 +131,12 @@ def streamed_pod(
     passes += 1
     ub, sv, vt = torch.linalg.svd(small, full_matrices=False)
     basis = q @ ub[:, :r]
-    coeffs = (sv[:r, None] * vt[:r]).T  # U_r^T X = Sigma_r V_r^T, as rows (M, r)
+    # LAPACK may return either sign for each singular pair, and which one depends on the thread count and the
+    # CPU. Fix it: every basis vector has a positive projection on a fixed pseudo-random vector.
+    sign = torch.sign(sign_reference(basis.shape[0]).to(basis) @ basis)
+    sign[sign == 0] = 1
+    basis = basis * sign
+    coeffs = (sv[:r, None] * (vt[:r] * sign[:, None])).T  # U_r^T X = Sigma_r V_r^T, as rows (M, r)
     return {
         "basis": basis,
         "singular_values": sv[:r],
@@ -122,16 +159,59 @@ class _ReducedCoordinates:
         return x
 
 
+#: Default regularization of the three ill-conditioned solves (see the module docstring and docs/models.md).
+DMD_TIKHONOV = 1e-8
+RBF_SMOOTHING = 1e-10
+OPERATOR_TIKHONOV = 1e-4
+
+
+class _Setting:
+    """A regularization setting of :class:`PDMD`: a float in [0, 1) (or None where allowed), validated on
+    assignment; changing it drops what was computed with the old value (the DMD fit or the cached A~)."""
+
+    def __init__(self, refits_dmd: bool, optional: bool = False) -> None:
+        self.refits_dmd, self.optional = refits_dmd, optional
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj: Any, owner: type) -> Any:
+        return self if obj is None else obj.__dict__["_settings"][self.name]
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        if value is None and self.optional:
+            pass
+        elif value is None or not 0 <= float(value) < 1:
+            raise ValueError(f"{self.name} must be in [0, 1){' or None' if self.optional else ''}, got {value}")
+        else:
+            value = float(value)
+        settings = obj.__dict__.setdefault("_settings", {})
+        if settings.get(self.name, object()) != value:
+            settings[self.name] = value
+            if "_operator_cache" in obj.__dict__:
+                if self.refits_dmd:
+                    obj._reset_dmd()
+                obj._operator_cache.clear()
+
+
 class PDMD(LatentModel):
     """Parametric DMD as a latent model (state z = POD coefficients, forecast A~(mu) z).
 
     Fit with :meth:`fit` on arrays ``(n_traj, n_t, C, *grid)`` in physical units (numpy arrays, torch
     tensors or a lazily read h5py dataset: trajectories are read one at a time), or :meth:`fit_dataset`.
+    The regularization settings ``dmd_tikhonov``, ``rbf_smoothing``, ``operator_tikhonov`` and
+    ``pinv_rtol`` (module docstring) are constructor arguments and assignable attributes.
     """
 
     kind = "pdmd"
     fitted_in_closed_form = True
     _RESIZABLE = ("basis", "singular_values", "train_coefficients", "train_params")
+    _SETTINGS = ("dmd_tikhonov", "rbf_smoothing", "operator_tikhonov", "pinv_rtol")
+
+    dmd_tikhonov = _Setting(refits_dmd=True)
+    rbf_smoothing = _Setting(refits_dmd=True)
+    operator_tikhonov = _Setting(refits_dmd=False)
+    pinv_rtol = _Setting(refits_dmd=False, optional=True)
 
     def __init__(
         self,
@@ -141,11 +221,15 @@ class PDMD(LatentModel):
         dt: float | None = None,
         stats_mean: ArrayLike | None = None,
         stats_std: ArrayLike | None = None,
+        dmd_tikhonov: float = DMD_TIKHONOV,
+        rbf_smoothing: float = RBF_SMOOTHING,
+        operator_tikhonov: float = OPERATOR_TIKHONOV,
         pinv_rtol: float | None = None,
     ) -> None:
         super().__init__(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std)
-        if pinv_rtol is not None and not 0 <= pinv_rtol < 1:
-            raise ValueError(f"pinv_rtol must be in [0, 1), got {pinv_rtol}")
+        self.dmd_tikhonov = dmd_tikhonov
+        self.rbf_smoothing = rbf_smoothing
+        self.operator_tikhonov = operator_tikhonov
         self.pinv_rtol = pinv_rtol
         self.n_state = self.n_fields * math.prod(self.grid)
         self.register_buffer("basis", torch.zeros(0, self.r))  # U_r (N, r), normalized units
@@ -157,6 +241,11 @@ class PDMD(LatentModel):
         # PyDMD's condition number of the stacked coefficients when it exceeds 1e5 (see parametric_dmd).
         self.dmd_condition_number: float | None = None
         self._operator_cache: dict[float, np.ndarray] = {}
+
+    @property
+    def settings(self) -> dict[str, float | None]:
+        """The regularization settings, by name."""
+        return {name: getattr(self, name) for name in self._SETTINGS}
 
     @property
     def is_fitted(self) -> bool:
@@ -236,14 +325,18 @@ class PDMD(LatentModel):
 
             from .rbf import MultiquadricRBF
 
-            pdmd = ParametricDMD(DMD(svd_rank=self.r), _ReducedCoordinates(), MultiquadricRBF())
-            coeffs = self.train_coefficients.detach().cpu().numpy()
+            coeffs = np.ascontiguousarray(self.train_coefficients.detach().cpu().numpy().transpose(0, 2, 1))
+            pdmd = ParametricDMD(
+                DMD(svd_rank=self.r, tikhonov_regularization=self._pydmd_tikhonov(coeffs)),
+                _ReducedCoordinates(),
+                MultiquadricRBF(smoothing=self.rbf_smoothing),
+            )
             # PyDMD warns when the stacked coefficients' condition number exceeds 1e5, which POD coefficients
-            # of smooth flows always do; the DMD's rank-r truncation is what handles it. Keep the number as a
-            # diagnostic (``dmd_condition_number``) instead of repeating the warning on every fit and load.
+            # of smooth flows always do; the rank-r truncation and ``dmd_tikhonov`` are what handle it. Keep
+            # the number as a diagnostic (``dmd_condition_number``) instead of repeating the warning.
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                pdmd.fit(np.ascontiguousarray(coeffs.transpose(0, 2, 1)), self.train_params.cpu().numpy())
+                pdmd.fit(coeffs, self.train_params.cpu().numpy())
             self.dmd_condition_number = None
             for w in caught:
                 found = _CONDITION_WARNING.match(str(w.message))
@@ -254,6 +347,18 @@ class PDMD(LatentModel):
             self._pdmd = pdmd
         return self._pdmd
 
+    def _pydmd_tikhonov(self, coeffs: np.ndarray) -> float | None:
+        """PyDMD's ``tikhonov_regularization`` for ``dmd_tikhonov``, from coefficients (n_traj, r, n_t).
+
+        PyDMD replaces each singular value s of its X (the stacked coefficients without the last time) by
+        (s^2 + t ||X||_F) / s; t = (dmd_tikhonov * s_max)^2 / ||X||_F makes that the Tikhonov filter
+        s / (s^2 + lambda^2) with lambda = dmd_tikhonov * s_max, relative to the data's own scale.
+        """
+        if self.dmd_tikhonov == 0:
+            return None
+        x = coeffs[:, :, :-1].reshape(-1, coeffs.shape[2] - 1)
+        return float((self.dmd_tikhonov * np.linalg.norm(x, 2)) ** 2 / np.linalg.norm(x))
+
     # Online operator ------------------------------------------------------------------------------
     def interpolated_coefficients(self, mu: ArrayLike) -> np.ndarray:
         """z_k(mu) of Eq. A3 for every training time step, (n_mu, n_t, r) float64 (DMD then RBF in mu)."""
@@ -263,28 +368,39 @@ class PDMD(LatentModel):
         return np.ascontiguousarray(np.real(coeffs).transpose(0, 2, 1))
 
     def online_operator(self, mu: ArrayLike) -> torch.Tensor:
-        """A~(mu) = Z_{1:} Z_{:-1}^+ (Eq. A4) fitted to the interpolated coefficients, (B, r, r) float64."""
+        """A~(mu) fitted to the interpolated coefficients by Eq. A4, (B, r, r) float64, cached per mu."""
         mu_np = np.atleast_1d(np.asarray(torch.as_tensor(mu).detach().cpu(), dtype=np.float64))
         missing = sorted({float(m) for m in mu_np} - set(self._operator_cache))
         if missing:
             for m, zk in zip(missing, self.interpolated_coefficients(missing)):
-                z0, z1 = zk[:-1].T, zk[1:].T  # (r, n_t - 1)
-                self._operator_cache[m] = z1 @ np.linalg.pinv(z0, rcond=self.online_rtol(z0.shape))
+                self._operator_cache[m] = self.fit_operator(zk)
         ops = np.stack([self._operator_cache[float(m)] for m in mu_np])
         return torch.as_tensor(ops, device=self.stats_mean.device)
 
-    def online_rtol(self, shape: tuple[int, int]) -> float:
-        """Relative singular-value cutoff of the pseudoinverse in Eq. A4 for a Z_{:-1} of ``shape``."""
+    def fit_operator(self, coefficients: np.ndarray) -> np.ndarray:
+        """Eq. A4 for one coefficient sequence (n_t, r): the A (r, r) with z_{k+1} ~ A z_k, float64.
+
+        By default the Tikhonov solution Z_{1:} Z_{:-1}^T (Z_{:-1} Z_{:-1}^T + lambda^2 I)^{-1}, computed as
+        Z_{1:} V diag(s / (s^2 + lambda^2)) U^T from the SVD Z_{:-1} = U diag(s) V^T, with lambda =
+        ``operator_tikhonov`` * s_max; with ``pinv_rtol`` set, Z_{1:} Z_{:-1}^+ truncated at that cutoff.
+        """
+        z = np.asarray(coefficients, dtype=np.float64)
+        z0, z1 = z[:-1].T, z[1:].T  # (r, n_t - 1)
         if self.pinv_rtol is not None:
-            return self.pinv_rtol
-        return max(shape) * float(np.finfo(np.float32).eps)
+            return z1 @ np.linalg.pinv(z0, rcond=self.pinv_rtol)
+        u, s, vt = np.linalg.svd(z0, full_matrices=False)
+        lam2 = (self.operator_tikhonov * s[0]) ** 2 if s.size else 0.0
+        filt = np.divide(s, s * s + lam2, out=np.zeros_like(s), where=s > 0)
+        return (z1 @ vt.T * filt) @ u.T
 
     # Interface ------------------------------------------------------------------------------------
     def encode(self, x: ArrayLike, mu: ArrayLike | None = None) -> torch.Tensor:
-        """POD coefficients U_r^T normalize(x), (B, r); mu is not used."""
+        """POD coefficients U_r^T normalize(x), (B, r), computed in float64 and returned in x's dtype; mu is
+        not used. (A float32 product over the sphere's 10^6 values moved the final error of a forward run by
+        5e-3 relative against float64.)"""
         self._require_fitted()
         x = self._fields(x)
-        return self.normalize(x).flatten(1) @ self.basis.to(x.dtype)
+        return (self.normalize(x.double()).flatten(1) @ self.basis.double()).to(x.dtype)
 
     def decode(self, z: ArrayLike, mu: ArrayLike | None = None) -> torch.Tensor:
         """denormalize(U_r z), (B, C, *grid); mu is not used."""
@@ -294,9 +410,14 @@ class PDMD(LatentModel):
         return self.denormalize(x.view(z.shape[0], self.n_fields, *self.grid))
 
     def forecast(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
+        """A~(mu) z, computed in float64 and returned in z's dtype.
+
+        In float32 the product's own round-off, compounded over a forward run, changed the final error of
+        a 99-step Burgers run by up to 1e-3 relative between thread counts; rounding only the result keeps
+        float32 runs within 1e-4 of float64 ones."""
         z = self._latent(z)
         a = self.online_operator(self._param(mu, z.shape[0]))
-        return (a.to(z.dtype) @ z[..., None])[..., 0]
+        return (a @ z.to(a.dtype)[..., None])[..., 0].to(z.dtype)
 
     def forecast_jacobian(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
         z = self._latent(z)
@@ -323,8 +444,9 @@ class PDMD(LatentModel):
         return G.expand(z.shape[0], *G.shape)
 
     def checkpoint_metadata(self) -> dict[str, Any]:
-        """The pseudoinverse tolerance and the fit's diagnostics."""
-        return {"pdmd": {"pinv_rtol": self.pinv_rtol, "fit_info": self.fit_info}}
+        """The regularization settings (also in the state dict, which is what loading uses) and the fit's
+        diagnostics."""
+        return {"pdmd": {**self.settings, "fit_info": self.fit_info}}
 
     def observation_matrix(self, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
         """J = S diag(std) U_r restricted to ``channel`` at ``sensors``, (m, r): h(z) = J z + mean[channel]."""
@@ -340,11 +462,26 @@ class PDMD(LatentModel):
         return z @ j.T + self.stats_mean[self._channel_index(channel)].to(z.dtype)
 
     # Persistence ----------------------------------------------------------------------------------
+    def get_extra_state(self) -> torch.Tensor:
+        """The regularization settings as a float64 tensor (NaN: ``pinv_rtol`` None), saved in the state dict.
+
+        Extra state rather than a buffer, so that ``.to(dtype)`` never rounds it."""
+        return torch.tensor([math.nan if v is None else v for v in self.settings.values()], dtype=torch.float64)
+
+    def set_extra_state(self, state: Any) -> None:
+        values = torch.as_tensor(state, dtype=torch.float64).tolist()
+        if len(values) != len(self._SETTINGS):
+            raise ValueError(f"pDMD extra state must hold {len(self._SETTINGS)} settings, got {len(values)}")
+        for name, value in zip(self._SETTINGS, values):
+            setattr(self, name, None if math.isnan(value) else value)
+
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: Any, **kwargs: Any) -> None:
         for name in self._RESIZABLE:  # sizes are known only after a fit
             key = prefix + name
             if key in state_dict:
                 setattr(self, name, torch.empty_like(state_dict[key], device=getattr(self, name).device))
+        # A state dict saved before the settings were stored keeps this model's settings (the defaults).
+        state_dict.setdefault(prefix + "_extra_state", self.get_extra_state())
         self._reset_dmd()
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 

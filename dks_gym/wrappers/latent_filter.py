@@ -9,6 +9,10 @@ with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env
 * observation: ``[mean z (r); log diag P (r)]`` as float32, the filter's belief;
 * ``info["estimate"]``: the decoded mean, ``(C, *grid)`` in physical units; ``info["mse"]``,
   ``info["normalized_mse"]``, ``gain_norm``, ``spread`` and (EKF) ``forecast_norm`` = ||F_k||_2;
+* with ``uncertainty=True`` (default) ``info["estimate_std"]``, the predictive std of every cell
+  (``(C, *grid)``, physical units: the filter's latent covariance pushed through the decoder, plus the
+  decoder's reconstruction variance when given), and its scores ``coverage`` (of the central 95 %
+  interval), ``nees`` (mean per cell) and ``crps`` over the scored channels;
   wall time per DA step is in ``wrapper.filter.diagnostics`` (in info it would break determinism);
 * reward: minus the MSE over the scored channels against ``env.unwrapped.true_state`` (physical units),
   or over standardized channels with ``reward="normalized_mse"``.
@@ -32,7 +36,8 @@ REWARDS = ("mse", "normalized_mse")
 
 def build_assimilation(base: SensingEnv, model: Any, filter: str | None, config: FilterConfig | None, *,
                        r: int | None, model_preset: str, T: int, reward: str, device: str, dtype: torch.dtype,
-                       train_if_missing: bool) -> Assimilation:
+                       train_if_missing: bool, uncertainty: bool = True,
+                       reconstruction_var: Any = None) -> Assimilation:
     """The assimilation core a filter wrapper runs: the model resolved for the env's dataset, the config
     with ``filter`` (when given) as its kind. Shared by :class:`LatentFilter` and the vector env."""
     if reward not in REWARDS:
@@ -44,7 +49,8 @@ def build_assimilation(base: SensingEnv, model: Any, filter: str | None, config:
         config = dataclasses.replace(config, kind=filter)
     latent = resolve_model(model, base.benchmark.name, r=r, preset=model_preset, T=T, device=device,
                            train_if_missing=train_if_missing, dataset=base.dataset)
-    return Assimilation(latent, config, device=device, dtype=dtype)
+    return Assimilation(latent, config, device=device, dtype=dtype, uncertainty=uncertainty,
+                        reconstruction_var=reconstruction_var)
 
 
 def belief_space(r: int) -> spaces.Box:
@@ -62,6 +68,10 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``filter``: "ekf", "enkf" or "forward" (default: ``config.kind``, "ekf"). ``config``: a
     :class:`~dks_gym.FilterConfig` with everything else (initial condition, P0, Q, ensemble size, inflation,
     localization, divergence policy, seed); R = sigma^2 I comes from the env.
+    ``uncertainty``: put ``estimate_std`` and its scores (``coverage``, ``nees``, ``crps``) in ``info``
+    (default True; it costs r decoder Jacobian-vector products per step, or one decode per EnKF member:
+    False for speed). ``reconstruction_var``: the decoder's reconstruction-error variance per cell
+    ``(C, *grid)`` (:func:`~dks_gym.assimilation.reconstruction_variance`), added to the variance.
     """
 
     def __init__(
@@ -78,6 +88,8 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         device: str = "cpu",
         dtype: torch.dtype = torch.float32,
         train_if_missing: bool = False,
+        uncertainty: bool = True,
+        reconstruction_var: Any = None,
     ) -> None:
         args = {k: v for k, v in locals().items() if k not in ("self", "env", "__class__")}
         gym.utils.RecordConstructorArgs.__init__(self, **args)
@@ -87,12 +99,14 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise TypeError(f"LatentFilter wraps a dks_gym SensingEnv, got {type(base).__name__}")
         self.assimilation = build_assimilation(base, model, filter, config, r=r, model_preset=model_preset, T=T,
                                                reward=reward, device=device, dtype=dtype,
-                                               train_if_missing=train_if_missing)
+                                               train_if_missing=train_if_missing, uncertainty=uncertainty,
+                                               reconstruction_var=reconstruction_var)
         self.model = self.assimilation.model
         self.config = self.assimilation.config
         self.reward_kind = reward
         self.observation_space = belief_space(self.model.r)
         self.estimate: np.ndarray | None = None
+        self.estimate_std: np.ndarray | None = None
 
     @property
     def filter(self):
@@ -117,6 +131,10 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         info = dict(info)
         info.update(estimate=self.estimate, mse=float(snap.mse[0]), normalized_mse=float(snap.normalized_mse[0]),
                     latent_mean=snap.latent_mean[0])
+        if snap.estimate_std is not None:
+            self.estimate_std = snap.estimate_std[0].cpu().numpy().astype(np.float32)
+            info.update(estimate_std=self.estimate_std, coverage=float(snap.coverage[0]), nees=float(snap.nees[0]),
+                        crps=float(snap.crps[0]))
         return info
 
     def render(self) -> np.ndarray | None:

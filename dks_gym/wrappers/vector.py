@@ -29,7 +29,9 @@ class LatentFilterVectorEnv(VectorEnv):
 
     ``model``, ``filter``, ``config`` and the model options are those of :class:`~dks_gym.wrappers.LatentFilter`;
     every other keyword goes to each :class:`~dks_gym.envs.SensingEnv` (``preset``, ``sensor_mode``,
-    ``noise_level`` ...).
+    ``noise_level`` ...). ``uncertainty`` (default True) puts ``estimate_std`` (N, C, *grid) and the scores
+    ``coverage``, ``nees``, ``crps`` (N,) in the infos; ``uncertainty=False`` skips their cost (RL training).
+    ``reconstruction_var``: as for :class:`~dks_gym.wrappers.LatentFilter`.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
@@ -49,6 +51,8 @@ class LatentFilterVectorEnv(VectorEnv):
         device: str = "cpu",
         dtype: torch.dtype = torch.float32,
         train_if_missing: bool = False,
+        uncertainty: bool = True,
+        reconstruction_var: Any = None,
         **env_kwargs: Any,
     ) -> None:
         if not (isinstance(num_envs, int) and num_envs >= 1):
@@ -57,7 +61,8 @@ class LatentFilterVectorEnv(VectorEnv):
         self.benchmark = self.envs[0].benchmark
         self.assimilation = build_assimilation(self.envs[0], model, filter, config, r=r, model_preset=model_preset,
                                                T=T, reward=reward, device=device, dtype=dtype,
-                                               train_if_missing=train_if_missing)
+                                               train_if_missing=train_if_missing, uncertainty=uncertainty,
+                                               reconstruction_var=reconstruction_var)
         self.model = self.assimilation.model
         self.config = self.assimilation.config
         self.num_envs = num_envs
@@ -117,6 +122,9 @@ class LatentFilterVectorEnv(VectorEnv):
         }
         infos["mse"], infos["normalized_mse"] = snap.mse, snap.normalized_mse
         infos["estimate"] = snap.estimate.cpu().numpy().astype(np.float32)
+        if snap.estimate_std is not None:
+            infos["estimate_std"] = snap.estimate_std.cpu().numpy().astype(np.float32)
+            infos["coverage"], infos["nees"], infos["crps"] = snap.coverage, snap.nees, snap.crps
         return infos
 
     def close_extras(self, **kwargs: Any) -> None:

@@ -1,0 +1,212 @@
+"""The predictive uncertainty of a decoded filter estimate, and the scores of that uncertainty.
+
+The filters carry a latent covariance; the fields a user sees are decoded. Per cell the predictive variance is
+
+* EKF and forward run: ``diag(G P G^T)`` with ``G = d decode / dz`` at the filter mean (the first-order,
+  "delta method" push of the latent covariance ``P`` through the decoder). It is computed as
+  ``sum_j (G l_j)^2`` over the columns ``l_j`` of a factor ``L L^T = P``: ``r`` Jacobian-vector products of
+  the decoder (forward-mode autodiff, vmapped over the columns so the primal pass is shared), never the
+  ``(C n_cells, r)`` Jacobian itself; models whose decoder is linear (pDMD) give their exact Jacobian
+  (``decoder_jacobian``), multiplied by ``L`` in chunks of cells.
+* EnKF: the sample variance (divisor ``n - 1``) of the decoded members, every member decoded.
+
+plus, when given, the decoder's own reconstruction-error variance per cell (:func:`reconstruction_variance`):
+the filter's covariance says how unsure the latent state is, not how well the decoder can represent the
+field at all. The scores of a Gaussian prediction ``N(mean, std^2)`` against the truth, averaged over the
+cells of the scored channels (as the Eq. 18 MSE is): :func:`gaussian_scores` (coverage of the central 95 %
+interval, NEES per cell, CRPS, :func:`gaussian_crps`).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from ..dataset import Dataset
+from ..filters.common import psd_sqrt
+from ..models import LatentModel
+from ..models.training import calibrate
+
+#: The two-sided 95 % quantile of the standard normal, Phi^-1(0.975).
+Z95 = 1.959963984540054
+#: How many numbers one chunk of decoded fields may hold (per JVP call, per decode, per G L block): 2^22,
+#: 16 MB in float32. The sphere (4 x 64^3 cells) decodes 4 rows per call; Burgers 4096.
+CHUNK_NUMBERS = 2**22
+#: Scores divide by the std floored at this fraction of each channel's data std (a cell with no variance
+#: at all, e.g. inside a solid body of a linear model, must not divide by zero).
+STD_FLOOR = 1e-6
+_SQRT_PI = math.sqrt(math.pi)
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+
+
+def _quiet_jvp(fn: Any, primal: torch.Tensor, tangent: torch.Tensor) -> torch.Tensor:
+    with warnings.catch_warnings():
+        # torch's forward-mode AD loads its decompositions through torch.jit.script, which torch itself deprecates.
+        warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated", category=DeprecationWarning)
+        return torch.func.jvp(fn, (primal,), (tangent,))[1]
+
+
+def _field_size(model: Any, z: torch.Tensor, mu: torch.Tensor) -> int:
+    """Numbers in one decoded field: C * n_cells from the model's shape, or from one decode."""
+    if hasattr(model, "n_fields") and hasattr(model, "grid"):
+        return int(model.n_fields) * int(np.prod(model.grid))
+    with torch.no_grad():
+        return int(np.prod(model.decode(z[:1], mu[:1]).shape[1:]))
+
+
+def _has_exact_decoder_jacobian(model: Any) -> bool:
+    """True when the model overrides ``decoder_jacobian`` (a closed form, e.g. pDMD's affine decoder)."""
+    method = getattr(type(model), "decoder_jacobian", None)
+    return method is not None and method is not LatentModel.decoder_jacobian
+
+
+def jacobian_variance(model: Any, z: torch.Tensor, mu: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+    """``diag(G P G^T)`` per batch element, ``(B, C, n_cells)``, with ``G = d decode(z, mu) / dz`` at ``z``.
+
+    ``z`` (B, r), ``mu`` (B,), ``P`` (B, r, r) symmetric positive semi-definite. With ``L L^T = P``:
+    ``diag(G P G^T) = sum_j (G L[:, j])^2``. Generic models: one Jacobian-vector product of the decoder per
+    column of ``L`` (forward mode, vmapped over the columns), in chunks of elements and columns holding at
+    most :data:`CHUNK_NUMBERS` output numbers (plus the decoder's activations); ``G`` itself is never formed.
+    Models with their own ``decoder_jacobian`` (pDMD: exact, affine) give ``G``, multiplied by ``L`` in
+    chunks of cells.
+    """
+    z = z.detach()
+    batch, r = z.shape
+    L = psd_sqrt(0.5 * (P + P.mT)).to(z)
+    if _has_exact_decoder_jacobian(model):
+        G = model.decoder_jacobian(z, mu)  # (B, C, n_cells, r); pDMD: a broadcast view
+        n_fields, n_cells = G.shape[1], G.shape[2]
+        out = torch.empty(batch, n_fields, n_cells, dtype=z.dtype, device=z.device)
+        step = max(1, CHUNK_NUMBERS // max(1, batch * n_fields * r))
+        for s in range(0, n_cells, step):
+            out[:, :, s:s + step] = (G[:, :, s:s + step].to(z) @ L[:, None]).pow(2).sum(-1)
+        return out
+    mu = torch.as_tensor(mu, device=z.device)
+    n_out = _field_size(model, z, mu)
+    # Per call: (elements x directions) tangent fields of n_out numbers each, at most CHUNK_NUMBERS in all.
+    per_element = max(1, CHUNK_NUMBERS // (n_out * r))
+    directions = r if n_out * r <= CHUNK_NUMBERS else max(1, CHUNK_NUMBERS // n_out)
+    parts = []
+    for b in range(0, batch, per_element):
+        zb, mb, Lb = z[b:b + per_element], mu[b:b + per_element], L[b:b + per_element]
+        var = None
+        for j in range(0, r, directions):
+            cols = _tangent_fields(model, zb, mb, Lb[:, :, j:j + directions].permute(2, 0, 1))  # (d, b, C, ...)
+            sq = cols.pow(2).sum(0)
+            var = sq if var is None else var + sq
+        parts.append(var.flatten(2))
+    return torch.cat(parts)
+
+
+def _tangent_fields(model: Any, z: torch.Tensor, mu: torch.Tensor, tangents: torch.Tensor) -> torch.Tensor:
+    """``d decode(z, mu)[t]`` for each of the tangents ``(d, B, r)``: ``(d, B, C, *grid)``.
+
+    One forward-mode pass vmapped over the tangents (the primal pass is shared, about 2-3x faster than
+    stacking the directions as rows); decoders whose operations lack vmap rules fall back to stacked rows.
+    """
+
+    def decode(x: torch.Tensor) -> torch.Tensor:
+        return model.decode(x, mu)
+
+    try:
+        return torch.func.vmap(lambda t: _quiet_jvp(decode, z, t))(tangents).detach()
+    except (RuntimeError, NotImplementedError):
+        d, batch = tangents.shape[:2]
+        rows_mu = mu.repeat(d)
+        out = _quiet_jvp(lambda x: model.decode(x, rows_mu), z.repeat(d, 1), tangents.reshape(d * batch, -1))
+        return out.detach().reshape(d, batch, *out.shape[1:])
+
+
+def ensemble_variance(model: Any, ensemble: torch.Tensor, mu: torch.Tensor,
+                      center: torch.Tensor | None = None) -> torch.Tensor:
+    """Sample variance (divisor ``n - 1``) over the members of the decoded ensemble ``(B, n, r)``: ``(B, C, n_cells)``.
+
+    Every member is decoded, in chunks of rows of at most :data:`CHUNK_NUMBERS` numbers; the sums are
+    shifted by ``center`` (B, C, *grid) (e.g. the decoded mean; default the first member) for accuracy.
+    """
+    batch, n, r = ensemble.shape
+    rows = ensemble.detach().reshape(batch * n, r)
+    rows_mu = torch.as_tensor(mu).repeat_interleave(n, dim=0)
+    owner = torch.arange(batch, device=rows.device).repeat_interleave(n)
+    with torch.no_grad():
+        if center is None:
+            center = model.decode(ensemble[:, 0], mu)
+        shift = center.flatten(2)
+        n_out = shift[0].numel()
+        step = max(1, CHUNK_NUMBERS // n_out)
+        s1 = torch.zeros_like(shift)
+        s2 = torch.zeros_like(shift)
+        for s in range(0, batch * n, step):
+            d = model.decode(rows[s:s + step], rows_mu[s:s + step]).flatten(2) - shift[owner[s:s + step]]
+            s1.index_add_(0, owner[s:s + step], d)
+            s2.index_add_(0, owner[s:s + step], d.pow(2))
+    return ((s2 - s1.pow(2) / n) / (n - 1)).clamp_min(0.0)
+
+
+def reconstruction_variance(model: Any, dataset: Dataset | str, trajectories: Sequence[int] | np.ndarray,
+                            split: str = "train") -> np.ndarray:
+    """The decoder's reconstruction-error variance per cell, ``(C, *grid)`` float64, physical units squared.
+
+    The mean over every frame of the given trajectories of ``(decode(encode(x)) - x)^2``: what the model
+    cannot represent even with the latent state known exactly; :func:`dks_gym.models.calibrate` computes
+    it (training stores it as ``model.calibration["reconstruction_variance"]``, on held-out trajectories).
+    Use trajectories the model was not trained on, else it is optimistic.
+    """
+    ds = dataset if isinstance(dataset, Dataset) else Dataset(dataset)
+    index = [int(t) for t in np.asarray(trajectories, dtype=np.int64).reshape(-1)]
+    if not index:
+        raise ValueError("reconstruction_variance needs at least one trajectory")
+    return calibrate(model, ds, index, split)["reconstruction_variance"].double().numpy()
+
+
+def gaussian_crps(x: Any, mean: Any, std: Any) -> Any:
+    """CRPS of ``N(mean, std^2)`` at ``x``, elementwise: ``std [z (2 Phi(z) - 1) + 2 phi(z) - 1/sqrt(pi)]``,
+    ``z = (x - mean) / std`` (Gneiting and Raftery 2007). Tensors in, a tensor out; otherwise numpy."""
+    as_numpy = not any(isinstance(v, torch.Tensor) for v in (x, mean, std))
+    x, mean, std = (torch.as_tensor(v, dtype=torch.float64) if as_numpy else v for v in (x, mean, std))
+    z = (x - mean) / std
+    pdf = torch.exp(-0.5 * z * z) / _SQRT_2PI
+    crps = std * (z * (2.0 * torch.special.ndtr(z) - 1.0) + 2.0 * pdf - 1.0 / _SQRT_PI)
+    return crps.numpy() if as_numpy else crps
+
+
+def gaussian_scores(estimate: torch.Tensor, std: torch.Tensor, truth: torch.Tensor, scored: Sequence[int],
+                    channel_std: torch.Tensor | np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Scores of the per-cell predictions ``N(estimate, std^2)`` against ``truth``, all ``(B, C, *grid)``,
+    over the ``scored`` channels and every cell (as :func:`~dks_gym.assimilation.field_errors`), per element:
+
+    * ``coverage``: the fraction of cells whose truth lies in the central 95 % interval ``estimate +- 1.96 std``
+      (0.95 when calibrated);
+    * ``nees``: the mean over cells of ``(truth - estimate)^2 / std^2`` (1 when calibrated);
+    * ``crps``: the mean over cells of :func:`gaussian_crps` (physical units; lower is better).
+
+    ``std`` is floored at :data:`STD_FLOOR` times ``channel_std`` (C,) (default 1) so that a cell without
+    variance does not divide by zero. Returns (B,) float64 arrays.
+    """
+    idx = list(scored)
+    mean = estimate[:, idx].flatten(2).double()
+    x = truth[:, idx].flatten(2).to(mean)
+    s = std[:, idx].flatten(2).to(mean)
+    floor = torch.ones(len(idx), dtype=mean.dtype, device=mean.device) if channel_std is None \
+        else torch.as_tensor(channel_std, device=mean.device).to(mean.dtype)[idx]
+    s = torch.maximum(s, STD_FLOOR * floor[None, :, None])
+    err = x - mean
+    return {"coverage": (err.abs() <= Z95 * s).double().mean(dim=(1, 2)).cpu().numpy(),
+            "nees": (err / s).pow(2).mean(dim=(1, 2)).cpu().numpy(),
+            "crps": gaussian_crps(x, mean, s).mean(dim=(1, 2)).cpu().numpy()}
+
+
+__all__ = [
+    "CHUNK_NUMBERS",
+    "STD_FLOOR",
+    "Z95",
+    "ensemble_variance",
+    "gaussian_crps",
+    "gaussian_scores",
+    "jacobian_variance",
+    "reconstruction_variance",
+]
