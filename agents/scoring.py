@@ -23,7 +23,7 @@ import torch
 from dks_gym.assimilation import AssimilationConfig, AssimilationResult, run_dataset
 from dks_gym.dataset import Dataset
 from dks_gym.envs.noise import noise_sigma
-from dks_gym.filters import GaussianState, LatentDynamics, ekf_forecast, ekf_update
+from dks_gym.filters import GaussianState, LatentDynamics, as_covariance, ekf_forecast, ekf_update
 from dks_gym.models import model_device
 
 
@@ -182,13 +182,9 @@ def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: 
     r = lin.F.shape[-1]
     batch = n_layouts * n_traj
     zeros = torch.zeros(batch, r, dtype=lin.J.dtype, device=lin.J.device)
-    eye = torch.eye(r, dtype=lin.J.dtype, device=lin.J.device)
-    def covariance(value: float | torch.Tensor) -> torch.Tensor:  # a variance times I, or an (r, r) matrix
-        value = torch.as_tensor(value, dtype=lin.J.dtype, device=lin.J.device)
-        return (value * eye if value.ndim == 0 else value).expand(batch, r, r)
-
-    Q = covariance(config.filter.process_noise(lin.model))
-    state = GaussianState(zeros, covariance(config.filter.initial_covariance(lin.model)).clone())
+    Q = as_covariance(config.filter.process_noise(lin.model), batch, r, like=zeros, name="Q")
+    P0 = as_covariance(config.filter.initial_covariance(lin.model), batch, r, like=zeros, name="P0")
+    state = GaussianState(zeros, P0.clone())
     R = lin.sigma[which] ** 2
     y = torch.zeros(batch, layouts.shape[1], dtype=lin.J.dtype, device=lin.J.device)
     traces = []

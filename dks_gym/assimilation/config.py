@@ -108,9 +108,7 @@ class FilterConfig:
     def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int, model: Any = None) -> EKF | EnKF:
         """The filter object (the forward run is the EKF loop stepped with the update off); ``model``
         resolves ``Q="calibrated"``."""
-        Q = self.process_noise(model)
-        if isinstance(Q, torch.Tensor):
-            Q = Q.to(sigma)
+        Q = self.process_noise(model)  # the filters convert it to the state's dtype and device
         if self.kind == "enkf":
             return EnKF(dynamics, sigma=sigma, Q=Q, n_members=self.n_members, inflation=self.inflation,
                         localization=self.localization, generator=seed, on_divergence=self.on_divergence)

@@ -171,9 +171,7 @@ class Assimilation:
                 z0 = self.model.encode(self._truth(envs), self._mu)
         else:
             z0 = approximate_initial_latent(self.model, envs[0].dataset).expand(len(envs), -1)
-        P0 = self.config.initial_covariance(self.model)
-        self._filter.reset(z0.to(self.device, self.dtype).clone(),
-                           P0.to(self.device, self.dtype) if isinstance(P0, torch.Tensor) else P0)
+        self._filter.reset(z0.to(self.device, self.dtype).clone(), self.config.initial_covariance(self.model))
         return self._snapshot(envs)
 
     @torch_threads("assimilate")

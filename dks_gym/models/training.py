@@ -574,11 +574,11 @@ def train_model(
         )
         if monitor is not None and monitor.best_state is not None:
             net.load_state_dict(monitor.best_state)
-        if net.calibration == {} and (done >= steps or (monitor is not None and monitor.stopped)):
-            # Measured with the final weights on the held-out trajectories (without a validation split, on at
-            # most 10 training ones spread over the split: in-sample, so an underestimate), then stored.
-            net.calibration = calibrate(net, dataset, held_out or _spread(n_train, 10))
-            write(done)
+        # fit_steps returns at the last step or an early stop: the run is complete. Its calibration is measured
+        # with the final weights on the held-out trajectories (without a validation split, on at most 10
+        # training ones spread over the split: in-sample, so an underestimate), then stored with them.
+        net.calibration = calibrate(net, dataset, held_out or _spread(n_train, 10))
+        write(done)
         history = torch.stack(losses).cpu().numpy()
         write_loss_curves(history, None if monitor is None else monitor.stacked().numpy(),
                           loss_curve_path(path), f"{name} {model} {preset} r={r} T={T}")
