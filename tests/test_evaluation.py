@@ -422,3 +422,91 @@ def test_committed_lite_results_every_experiment_in_tables_and_figures(tmp_path:
     assert names == committed - {"reconstruction"}
     assert names >= {"enkf", "ensemble", "noise", "latent", "multistep", "timing_approximate", "timing_exact"}
     assert all(p.stat().st_size > 10_000 for p in written)
+
+
+def test_records_hold_per_channel_errors_and_the_filter_spread(make_synthetic) -> None:
+    """Per scored channel: the final-time MSE (its mean over channels is Eq. 18) and the MSE over the
+    channel standardized by its data std, against a direct numpy computation; the gain norm and spread per
+    step; and the reproduce tables' per-channel section showing them."""
+    from dks_gym.evaluation.reproduce import tables_markdown
+    from dks_gym.models import build_model
+    from dks_gym.models.training import calibrate
+
+    ds = Dataset(make_synthetic("dambreak", n_t=5))
+    model = build_model("dambreak", "koopman", r=8, preset="lite", dataset=ds, seed=0)
+    model.calibration = calibrate(model, ds, [0, 1])
+    model.calibration["Q_scale"] = torch.tensor(1.0, dtype=torch.float64)
+    records = []
+    for kind in ("forward", "ekf"):
+        config = AssimilationConfig().replace(kind=kind, Q="paper", P0="paper")
+        result = run_assimilation(model, ds, config, uncertainty=False)
+        est, truth = result.final_estimate.astype(np.float64), result.final_truth.astype(np.float64)
+        scored = list(ds.benchmark.scored_indices)
+        direct = ((est - truth) ** 2)[:, scored].reshape(len(est), len(scored), -1).mean(-1)
+        np.testing.assert_allclose(result.final_channel_mse, direct, rtol=1e-5)
+        np.testing.assert_allclose(result.final_channel_mse.mean(1), result.final_mse, rtol=1e-5)
+        std = np.asarray(ds.stats_std, dtype=np.float64)[scored]
+        np.testing.assert_allclose(result.final_channel_nmse, direct / std**2, rtol=1e-5)
+        assert result.gain_norm.shape == result.spread.shape == (ds.n_frames - 1, len(est))
+        assert (result.gain_norm == 0).all() if kind == "forward" else (result.gain_norm > 0).all()
+        rec = make_record(result, experiment="main")
+        assert list(rec["final_channel_nmse_mean"]) == list(ds.scored_channels)
+        assert rec["final_channel_nmse_mean"]["p"] == pytest.approx(
+            float(result.final_channel_nmse[:, ds.scored_channels.index("p")].mean()))
+        assert len(rec["per_step_spread_mean"]) == ds.n_frames - 1
+        records.append(rec)
+    doc = new_results("dambreak", "lite", {"path": "x.h5", "fingerprint": "0"},
+                      {"scored_channels": list(ds.scored_channels), "n_test": 2}, records)
+    rows = [r for r in _section(tables_markdown(doc), "Per channel") if r[0] == "Koopman"]
+    assert [r[1] for r in rows] == ["forward run", "EKF"]
+    for row, rec in zip(rows, records):
+        assert row[2:-1] == [f"{rec['final_channel_nmse_mean'][c]:.3g}" if 1e-2 <= abs(rec['final_channel_nmse_mean'][c]) < 1e3
+                             else f"{rec['final_channel_nmse_mean'][c]:.2e}" for c in ds.scored_channels]
+    bad = dict(records[0], final_channel_nmse_mean={"p": "x"})
+    with pytest.raises(ResultsError, match="final_channel_nmse_mean"):
+        validate(dict(doc, records=[bad]))
+
+
+def test_an_interrupted_reproduce_continues_with_the_runs_already_written(models, home: Path,
+                                                                          tmp_path: Path) -> None:
+    """Records are saved after every run; --skip-done keeps them and runs only the missing ones."""
+    import importlib
+
+    rp = importlib.import_module("dks_gym.evaluation.reproduce")  # the module, not the function it exports
+
+    calls: list[str] = []
+    real = rp.run_assimilation
+
+    def stop_after_two(*args, **kwargs):
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        calls.append(kwargs.get("description"))
+        return real(*args, **kwargs)
+
+    out = tmp_path / "resume"
+    rp.run_assimilation = stop_after_two
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            rp.reproduce("burgers", data_preset="small", only=["enkf"], out=out, train=False, progress=False,
+                         log=lambda *_: None)
+    finally:
+        rp.run_assimilation = real
+    partial = load_results(out / "results.json")
+    assert len(partial["records"]) == 2  # the two finished runs survived the interruption
+    said: list[str] = []
+    ran: list[str] = []
+
+    def counting(*args, **kwargs):
+        ran.append(kwargs.get("description"))
+        return real(*args, **kwargs)
+
+    rp.run_assimilation = counting
+    try:
+        rp.reproduce("burgers", data_preset="small", only=["enkf"], out=out, train=False, progress=False,
+                     skip_done=True, log=said.append)
+    finally:
+        rp.run_assimilation = real
+    assert len(ran) == 8 - 2 and "2 of 8 runs kept" in " ".join(said) and "6 runs to do" in " ".join(said)
+    doc = load_results(out / "results.json")
+    assert len(doc["records"]) == 8
+    assert doc["records"][:2] == partial["records"]  # kept as written, not recomputed

@@ -26,17 +26,20 @@ import dks_gym  # noqa: F401  (registers the env ids)
 from dks_gym.assimilation import (
     AssimilationConfig,
     FilterConfig,
+    ensure_process_noise_scale,
     gaussian_crps,
     gaussian_scores,
     jacobian_variance,
     reconstruction_variance,
     run_assimilation,
+    tune_process_noise,
 )
 from dks_gym.benchmarks import GeneratedData, get_benchmark
 from dks_gym.dataset import Dataset, write_dataset
 from dks_gym.evaluation.figures import uncertainty_figure
 from dks_gym.evaluation.results import make_record, new_results, validate_record
 from dks_gym.models import LatentModel, benchmark_shape, build_model
+from dks_gym.models.checkpoint import read_checkpoint, save_checkpoint, update_calibration
 from dks_gym.models.training import calibrate
 from dks_gym.wrappers import LatentFilter
 from dks_gym.wrappers.vector import LatentFilterVectorEnv
@@ -126,7 +129,7 @@ class LinearLatentModel(LatentModel):
         return self.A.to(z).expand(z.shape[0], -1, -1)
 
 
-def _linear_problem(tmp_path: Path, n_test: int = 16, n_t: int = 40) -> tuple[LinearLatentModel, Path]:
+def _linear_problem(tmp_path: Path, n_test: int = 16, n_t: int = 40, n_train: int = 2) -> tuple[LinearLatentModel, Path]:
     """A Burgers-shaped dataset drawn from the linear model with process noise N(0, Q_TRUE I)."""
     bench = get_benchmark("burgers")
     x = bench.coords()[0]
@@ -134,7 +137,7 @@ def _linear_problem(tmp_path: Path, n_test: int = 16, n_t: int = 40) -> tuple[Li
     rot = lambda a: np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])  # noqa: E731
     A = 0.97 * np.block([[rot(0.2), np.zeros((2, 2))], [np.zeros((2, 2)), rot(-0.35)]])
     rng = np.random.default_rng(0)
-    params = {"train": np.array([0.1, 0.2]), "test": np.linspace(0.05, 0.9, n_test)}
+    params = {"train": np.linspace(0.1, 0.2, n_train), "test": np.linspace(0.05, 0.9, n_test)}
 
     def trajectories():
         for split, values in params.items():
@@ -176,6 +179,40 @@ def test_coverage_and_nees_are_calibrated_where_the_model_is_exact(tmp_path: Pat
     cov_e, cov_e_se, nees_e, nees_e_se = _calibration(enkf)
     assert abs(cov_e - 0.95) < max(4 * cov_e_se, 0.02), (cov_e, cov_e_se)
     assert abs(nees_e - 1.0) < max(4 * nees_e_se, 0.1), (nees_e, nees_e_se)
+
+
+def test_tuned_q_scale_recovers_the_true_process_noise(tmp_path: Path) -> None:
+    """Told 1/100 of the true process noise, the tuning finds the factor back from held-out coverage alone."""
+    model, path = _linear_problem(tmp_path, n_test=2, n_train=12)
+    ds = Dataset(path)
+    eye = torch.eye(R_LIN, dtype=torch.float64)
+    model.calibration = {"Q": eye * Q_TRUE / 100, "P0": eye, "P0_exact": eye * Q_TRUE,
+                         "trajectories": torch.arange(12)}
+    tuned = tune_process_noise(model, ds)
+    # Coverage grows with the scale, and bisection brackets 0.95 ever tighter.
+    scales, coverages = zip(*sorted(tuned["evaluations"]))
+    assert all(np.diff(coverages) >= -0.01), tuned["evaluations"]
+    assert abs(tuned["coverage"] - 0.95) < 0.01, tuned
+    assert 100 / 2 < tuned["scale"] < 100 * 2, tuned  # the true Q is 100 x the calibrated one
+    # ensure_... stores it once, and Q="calibrated" resolves to the scaled Q.
+    assert ensure_process_noise_scale(model, ds, FilterConfig(Q="paper")) is None  # not asked for
+    scale = ensure_process_noise_scale(model, ds)
+    assert float(model.calibration["Q_scale"]) == scale == tuned["scale"]
+    torch.testing.assert_close(FilterConfig().process_noise(model), eye * Q_TRUE / 100 * scale)
+    model.calibration["Q"] = None  # a second call must not tune again (it would fail on this Q)
+    assert ensure_process_noise_scale(model, ds) == scale
+
+
+def test_q_scale_is_written_into_the_checkpoint(models: dict, tmp_path: Path) -> None:
+    model = copy.deepcopy(models["koopman"])
+    path = save_checkpoint(tmp_path / "m.safetensors", model, {"note": "kept"}, training_tensors={"x": torch.ones(2)})
+    update_calibration(path, {**model.calibration, "Q_scale": torch.tensor(7.0, dtype=torch.float64)})
+    back = read_checkpoint(path)
+    assert back.metadata["note"] == "kept" and torch.equal(back.training["x"], torch.ones(2))
+    for name, value in model.state_dict().items():
+        assert torch.equal(back.model_state[name], value), name
+    assert float(back.calibration["Q_scale"]) == 7.0
+    torch.testing.assert_close(back.calibration["Q"], model.calibration["Q"])
 
 
 # (c) CRPS ----------------------------------------------------------------------------------------------

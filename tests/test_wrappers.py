@@ -380,8 +380,12 @@ def test_named_process_noise_choices(models: dict) -> None:
         with pytest.raises(ValueError, match="no calibrated P0"):
             finals(FilterConfig(Q=1e-4, P0="calibrated"))
         eye = torch.eye(model.r, dtype=torch.float64)
-        model.calibration = {"Q": 1e-4 * eye, "P0": 0.5 * eye, "P0_exact": 2e-4 * eye}
+        model.calibration = {"Q": 1e-4 * eye, "P0": 0.5 * eye, "P0_exact": 2e-4 * eye,
+                             "Q_scale": torch.tensor(1.0, dtype=torch.float64)}
         assert finals(FilterConfig()) == pytest.approx(finals(FilterConfig(Q=1e-4, P0=0.5)), rel=1e-6)
+        model.calibration["Q_scale"] = torch.tensor(4.0, dtype=torch.float64)  # the scale tuned on coverage
+        assert finals(FilterConfig()) == pytest.approx(finals(FilterConfig(Q=4e-4, P0=0.5)), rel=1e-6)
+        model.calibration["Q_scale"] = torch.tensor(1.0, dtype=torch.float64)
         exact = FilterConfig(initial="exact")
         assert finals(exact) == pytest.approx(finals(FilterConfig(initial="exact", Q=1e-4, P0=2e-4)), rel=1e-6)
     finally:

@@ -11,7 +11,17 @@
 
 from .config import DIVERGENCE_POLICIES, FILTERS, INITIAL_CONDITIONS, AssimilationConfig, FilterConfig
 from .core import Assimilation, Snapshot, approximate_initial_latent, field_errors, resolve_model
-from .episodes import AssimilationResult, close_envs, episode_envs, run_assimilation, run_dataset, run_episodes
+from .episodes import (
+    AssimilationResult,
+    close_envs,
+    ensure_process_noise_scale,
+    episode_envs,
+    held_out_coverage,
+    run_assimilation,
+    run_dataset,
+    run_episodes,
+    tune_process_noise,
+)
 from .uncertainty import (
     ensemble_variance,
     gaussian_crps,
@@ -32,14 +42,17 @@ __all__ = [
     "approximate_initial_latent",
     "close_envs",
     "ensemble_variance",
+    "ensure_process_noise_scale",
     "episode_envs",
     "field_errors",
     "gaussian_crps",
     "gaussian_scores",
+    "held_out_coverage",
     "jacobian_variance",
     "reconstruction_variance",
     "resolve_model",
     "run_assimilation",
     "run_dataset",
     "run_episodes",
+    "tune_process_noise",
 ]

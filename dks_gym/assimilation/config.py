@@ -37,7 +37,9 @@ class FilterConfig:
     trajectories) or "exact" (the encoded true first frame). ``P0``, ``Q``: initial and process-noise
     covariances (a variance times I, or a (B,), (r, r) or (B, r, r) tensor), or by name: "paper" (Q = 1e-4 I,
     P0 = I, the paper's) or "calibrated" (measured on the model's own errors when it was trained,
-    ``model.calibration``: Q its latent one-step residual covariance on held-out trajectories, P0 the spread
+    ``model.calibration``: Q its latent one-step residual covariance on held-out trajectories, times the scale
+    that makes the EKF's 95 % intervals cover 95 % of those trajectories (``calibration["Q_scale"]``,
+    :func:`~dks_gym.assimilation.ensure_process_noise_scale`; 1 until tuned), P0 the spread
     of the encoded first frames around the approximate initial condition, or Q for the exact one). The
     default is "calibrated": with the paper's values a converged model's EKF is worse than its forward run
     (docs/filters.md). R = sigma^2 I comes from the env. EnKF: ``n_members``, ``inflation`` (multiplicative, 1 = none), ``localization`` (a hook
@@ -94,7 +96,10 @@ class FilterConfig:
     def process_noise(self, model: Any) -> float | torch.Tensor:
         """``Q`` as the filters take it, a named choice resolved for ``model``."""
         if isinstance(self.Q, str):
-            return PAPER_Q if self.Q == "paper" else _calibrated(model, "Q")
+            if self.Q == "paper":
+                return PAPER_Q
+            # The residual covariance times the scale tuned on held-out coverage (assimilation.episodes.tune_process_noise).
+            return _calibrated(model, "Q") * float(model.calibration.get("Q_scale", 1.0))
         return self.Q
 
     def initial_covariance(self, model: Any) -> float | torch.Tensor:

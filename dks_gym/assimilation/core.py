@@ -242,9 +242,11 @@ class Assimilation:
 
     def history(self) -> dict[str, np.ndarray | None]:
         """Over the steps so far: ``forecast_norm`` (n, B) (None for the EnKF), ``step_seconds`` (n,), and
-        ``divergence_resets`` (B,), how many times each element was restarted."""
+        ``divergence_resets`` (B,), how many times each element was restarted, ``gain_norm`` and ``spread``
+        (n, B) (see :class:`~dks_gym.filters.common.Diagnostics`)."""
         d = self._filter.diagnostics
-        return {"forecast_norm": d.stacked("forecast_norm").cpu().double().numpy()
+        return {"gain_norm": d.stacked("gain_norm").cpu().double().numpy(),
+                "spread": d.stacked("spread").cpu().double().numpy(),"forecast_norm": d.stacked("forecast_norm").cpu().double().numpy()
                 if isinstance(self._filter, EKF) else None,
                 "step_seconds": np.asarray(d.wall_time, dtype=np.float64),
                 "divergence_resets": d.stacked("reset").sum(0).cpu().numpy().astype(np.int64)}

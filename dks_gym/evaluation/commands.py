@@ -34,17 +34,18 @@ def _errors() -> tuple[type[BaseException], ...]:
 @click.option("--data-preset", type=click.Choice(["paper", "small"]), default="paper", show_default=True,
               help="Dataset preset to evaluate on (and to train on when a model is missing).")
 @click.option("--no-train", is_flag=True, help="Fail instead of training a missing model.")
-@click.option("--skip-done", is_flag=True, help="Skip the experiments already in OUT/results.json.")
+@click.option("--skip-done", is_flag=True,
+              help="Keep the runs already in OUT/results.json instead of rerunning them (continue an interrupted run).")
 @click.option("--noise-seed", type=int, default=0, show_default=True, help="Seed of the measurement noise.")
 def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None, only: tuple[str, ...],
                       data_preset: str, no_train: bool, skip_done: bool, noise_seed: int) -> None:
     """Run the paper's Section IV experiments on BENCHMARK; write results.json, tables.md and figures/.
 
     Experiments: main (forward vs EKF, approximate and exact IC), enkf, ensemble (n = 20/40/64), noise
-    (10%/30%), latent (r = 16/64), multistep (T = 2/4/8), operator_norm, timing. Missing models are trained
-    (finished trainings are reused, interrupted ones resumed). The results file is rewritten after every
-    experiment; a rerun keeps the records of the experiments it does not run, and --skip-done continues an
-    interrupted run.
+    (10%/30%), latent (r = 16/64), multistep (T = 2/4/8), operator_norm, timing, calibrated. Missing models
+    are trained (finished trainings are reused, interrupted ones resumed). The results file is rewritten
+    after every run; a rerun keeps the records of the experiments it does not run, and --skip-done continues
+    an interrupted run with the runs still missing.
     """
     from .reproduce import reproduce
 

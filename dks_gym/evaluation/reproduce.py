@@ -47,7 +47,7 @@ from .figures import (
     temporal_error_figure,
     timing_figure,
 )
-from .results import ResultsError, load_results, make_record, merge, new_results, save_results, select
+from .results import ResultsError, load_results, make_record, merge, new_results, record_key, save_results, select
 
 MODELS = MODEL_ORDER  # koopman, pdmd, mlp, xlstm
 EXPERIMENTS: dict[str, str] = {
@@ -181,6 +181,37 @@ def _model_info(model: Any, kind: str, r: int, T: int, preset: str, dataset: Any
     return info
 
 
+def _key(experiment: str, run: Run) -> tuple:
+    """The results-file identity (:func:`record_key`) of ``run`` in ``experiment``."""
+    n = run.n_members if run.filter == "enkf" else None
+    return (experiment, run.model, run.filter, run.initial, run.noise, run.r, run.T, n)
+
+
+def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Any) -> bool:
+    """Whether the checkpoint of model ``key`` (kind, r, T) is complete in the data home."""
+    from ..models.checkpoint import checkpoint_path, read_metadata
+
+    kind, r, T = key
+    path = checkpoint_path(benchmark, kind, preset, r, T, data_preset=dataset.preset or "custom")
+    return path.exists() and bool(read_metadata(path).get("complete"))
+
+
+def _save(previous: dict[str, Any] | None, benchmark: str, preset: str, identity: dict[str, Any],
+          config: dict[str, Any], records: list[dict[str, Any]], infos: list[dict[str, Any]], start: float,
+          out: Path) -> dict[str, Any]:
+    """Write results.json (the records so far, plus the experiments of ``previous`` not in them) and tables.md."""
+    stamp = {"created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+             "wall_time_s": time.perf_counter() - start}
+    doc = new_results(benchmark, preset, identity, dict(config, **stamp), records, infos)
+    if previous is not None:
+        doc = merge(previous, doc)
+    present = {r["experiment"] for r in doc["records"]}
+    doc["config"]["experiments"] = [n for n in EXPERIMENTS if n in present]
+    save_results(doc, out / "results.json")
+    (out / "tables.md").write_text(tables_markdown(doc))
+    return doc
+
+
 def _previous(path: Path, benchmark: str, preset: str, identity: dict[str, Any]) -> dict[str, Any] | None:
     """An existing results file in the output folder, if it can be extended by this run (else a clear error)."""
     if not path.exists():
@@ -214,9 +245,10 @@ def reproduce(
 ) -> dict[str, Any]:
     """Run the selected experiments, write results.json, tables.md and figures to ``out``; return the results.
 
-    Experiments run one after the other; after each one the results file and the tables are rewritten,
-    so an interrupted run keeps every finished experiment (and every finished training). ``skip_done``
-    skips the experiments already in ``out/results.json``.
+    Experiments run one after the other; after every run the results file and the tables are rewritten, so
+    an interrupted run keeps every finished run (and every finished or partial training). ``skip_done``
+    keeps the runs already in ``out/results.json`` instead of rerunning them: rerun with it to continue.
+    Before starting it logs how many runs are left and which models must be trained first.
     """
     import torch
     from tqdm.auto import tqdm
@@ -234,12 +266,19 @@ def reproduce(
     identity = dataset_identity(ds)
     results_path = out / "results.json"
     previous = _previous(results_path, benchmark, preset, identity)
+    # With skip_done, a run whose record is already in the results file is kept, not rerun: an interrupted
+    # reproduce continues where it stopped (records are saved after every run, checkpoints during training).
+    kept: dict[tuple, dict[str, Any]] = {}
     if skip_done and previous is not None:
-        done = {r["experiment"] for r in previous["records"]}
-        if done & {name for name, _ in pairs}:
-            log(f"dks-gym: skipping experiments already in {results_path}: "
-                f"{', '.join(n for n in EXPERIMENTS if n in done and any(n == e for e, _ in pairs))}")
-        pairs = [(name, run) for name, run in pairs if name not in done]
+        kept = {record_key(r): r for r in previous["records"]}
+    todo = [(name, run) for name, run in pairs if _key(name, run) not in kept]
+    if len(todo) < len(pairs):
+        log(f"dks-gym: skipping experiments already in {results_path} ({len(pairs) - len(todo)} of {len(pairs)} "
+            "runs kept; an experiment interrupted part way continues with its missing runs)")
+    missing = sorted({f"{k[0]} r={k[1]} T={k[2]}" for _, run in todo if not _trained(benchmark, run.model_key,
+                                                                                      preset, ds)})
+    log(f"dks-gym: {len(todo)} runs to do" + (f"; {len(missing)} models to train first ({', '.join(missing)})"
+                                              if missing and train else ""))
     experiments = list(dict.fromkeys(name for name, _ in pairs))
     start = time.perf_counter()
     # The paper's P0 and Q for its tables (the values the committed results record); the calibrated
@@ -259,17 +298,18 @@ def reproduce(
     cache: dict[tuple, AssimilationResult] = {}
     records: list[dict[str, Any]] = []
     doc = previous
-    bar = tqdm(total=len(pairs), desc=f"reproduce {benchmark}", unit="run", disable=not progress,
-               dynamic_ncols=True)
+    bar = tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc=f"reproduce {benchmark}", unit="run",
+               disable=not progress, dynamic_ncols=True)
     for experiment in experiments:
-        runs = [run for name, run in pairs if name == experiment]
-        for key in dict.fromkeys(run.model_key for run in runs):
-            if key not in models:  # trained here when missing, with its own progress bar
-                kind, r, T = key
-                models[key] = load_model(benchmark, kind, r=r, preset=preset, T=T, dataset=ds, device=device,
-                                         train_if_missing=train, progress=progress)
-                infos.append(_model_info(models[key], kind, r, T, preset, ds, device))
-        for run in runs:
+        for run in (run for name, run in pairs if name == experiment):
+            if _key(experiment, run) in kept:
+                records.append(kept[_key(experiment, run)])
+                continue
+            if run.model_key not in models:  # trained here when missing, with its own progress bar
+                kind, r, T = run.model_key
+                models[run.model_key] = load_model(benchmark, kind, r=r, preset=preset, T=T, dataset=ds,
+                                                   device=device, train_if_missing=train, progress=progress)
+                infos.append(_model_info(models[run.model_key], kind, r, T, preset, ds, device))
             bar.set_postfix_str(f"{experiment}: {run.model} {run.filter} {run.initial}", refresh=False)
             if run.cache_key not in cache:
                 run_config = base.replace(kind=run.filter, initial=run.initial, noise_level=run.noise,
@@ -283,17 +323,11 @@ def reproduce(
             records.append(make_record(cache[run.cache_key], experiment=experiment, T=run.T,
                                        keep_curves=experiment == "main"))
             bar.update(1)
-        stamp = {"created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                 "wall_time_s": time.perf_counter() - start}
-        doc = new_results(benchmark, preset, identity, dict(config, **stamp), records, infos)
-        if previous is not None:
-            doc = merge(previous, doc)
-        present = {r["experiment"] for r in doc["records"]}
-        doc["config"]["experiments"] = [n for n in EXPERIMENTS if n in present]
-        save_results(doc, results_path)
-        (out / "tables.md").write_text(tables_markdown(doc))
+            doc = _save(previous, benchmark, preset, identity, config, records, infos, start, out)
     bar.close()
-    if doc is None:
+    if not todo and doc is not None:  # nothing ran: the file is complete already
+        log("dks-gym: nothing left to run")
+    elif doc is None:
         log("dks-gym: nothing to run")
         return {}
     write_figures(doc, out / "figures", cache=cache, dataset=ds)
@@ -451,6 +485,24 @@ def tables_markdown(doc: dict[str, Any]) -> str:
             parts += [f"- {'yes' if ok else 'NO' if ok is not None else 'n/a'}: {claim} ({evidence})"
                       for claim, ok, evidence in checks]
 
+    if "main" in present and len(cfg.get("scored_channels", [])) > 1:
+        channels = cfg["scored_channels"]
+        rows = []
+        for m in MODELS:
+            for f in ("forward", "ekf"):
+                rec = _find(doc, experiment="main", model=m, filter=f, initial="approximate")
+                per = (rec or {}).get("final_channel_nmse_mean")
+                if per:
+                    rows.append([MODEL_LABELS[m], "forward run" if f == "forward" else "EKF",
+                                 *[_sci(per.get(c)) for c in channels], _sci(rec["final_mse_mean"])])
+        if rows:
+            parts += ["", "## Per channel, approximate initial condition", "",
+                      ("Final-time MSE of each scored channel divided by that channel's data variance (so that "
+                       "channels in different units compare), mean over the test trajectories; the last column is "
+                       "the Eq. 18 MSE in physical units, as in the tables above."), "",
+                      _table(["model", "estimate", *[f"{c} (normalized)" for c in channels],
+                              "all channels, physical units"], rows)]
+
     if "enkf" in present:
         rows = []
         for m in MODELS:
@@ -487,6 +539,22 @@ def tables_markdown(doc: dict[str, Any]) -> str:
                   _table(["model", "forward run", "EKF, paper", "EKF, calibrated", "calibrated EKF / forward",
                           "EnKF, paper", "EnKF, calibrated", "calibrated EnKF / forward",
                           "95 % coverage, calibrated EKF / EnKF"], rows), "", *claims]
+        rows = []
+        for m in MODELS:
+            for f in ("ekf", "enkf"):
+                rec = _find(doc, experiment="calibrated", model=m, filter=f)
+                if rec is not None and rec.get("final_coverage_mean") is not None:
+                    rows.append([MODEL_LABELS[m], f.upper() if f == "ekf" else "EnKF",
+                                 f"{rec['final_coverage_mean']:.2f}", _over_steps(rec, "per_step_coverage_mean", ".2f"),
+                                 _over_steps(rec, "per_step_nees_mean", ".3g"), f"{rec['final_nees_mean']:.3g}",
+                                 _sci(rec["final_crps_mean"])])
+        if rows:
+            parts += ["", ("Scores of the calibrated filters' predictive std (`estimate_std`): the fraction of "
+                           "scored cells inside the central 95 % interval (0.95 when calibrated), the mean NEES per "
+                           "cell (1 when calibrated) and the Gaussian CRPS (physical units), at the final frame and "
+                           "averaged over frames 1 to the last."), "",
+                      _table(["model", "filter", "coverage, final", "coverage, all frames", "NEES, all frames",
+                              "NEES, final", "CRPS, final"], rows)]
 
     if "ensemble" in present:
         paper = PAPER_ENSEMBLE.get(bench, PAPER_ENSEMBLE["cylinder"])
@@ -499,6 +567,20 @@ def tables_markdown(doc: dict[str, Any]) -> str:
         label = "paper" if bench in PAPER_ENSEMBLE else "paper (cylinder)"
         parts += ["", "## EnKF ensemble size (Table VIII)", "",
                   _table(["model", "n = 20", "n = 40", "n = 64", f"{label} n = 20 / 40 / 64"], rows)]
+        rows = []
+        for m in ("koopman", "mlp", "xlstm"):
+            for n in (20, 40, 64):
+                rec = _find(doc, experiment="ensemble", model=m, filter="enkf", n_members=n)
+                spread, gain = ((rec or {}).get(k) for k in ("per_step_spread_mean", "per_step_gain_norm_mean"))
+                if spread and gain:
+                    rows.append([MODEL_LABELS[m], str(n), *[" / ".join(_sci(v[i]) for i in (0, 4, 9, -1))
+                                                           for v in (spread, gain)]])
+        if rows:
+            parts += ["", ("Does the ensemble collapse? Its spread sqrt(tr P / r) and the gain norm ||K_k||_2 after "
+                           "steps 1, 5, 10 and the last, mean over the test trajectories (a collapsed ensemble has "
+                           "a spread near 0 and a gain near 0: it stops reading the sensors)."), "",
+                      _table(["model", "n", "spread, steps 1 / 5 / 10 / last", "gain norm, steps 1 / 5 / 10 / last"],
+                             rows)]
 
     if "noise" in present:
         rows = []
@@ -568,6 +650,12 @@ def tables_markdown(doc: dict[str, Any]) -> str:
         parts += ["", f"## Wall time per DA step in ms (Figs. 4, 6), one trajectory, {cfg.get('device')}", "",
                   _table(["initial", "model", "forward", "EKF", "EnKF n=20", "EKF, whole test split batched"], rows)]
     return "\n".join(parts) + "\n"
+
+
+def _over_steps(rec: dict[str, Any], name: str, fmt: str) -> str:
+    """The mean over frames 1..n_t-1 of a per-step score (frame 0 is the initial estimate, before any step)."""
+    values = [v for v in (rec.get(name) or [])[1:] if v is not None]
+    return "-" if not values else format(float(np.mean(values)), fmt)
 
 
 def _fmt_norm(x: float | None) -> str:

@@ -36,6 +36,11 @@ A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run
                                     fraction of scored cells inside the central 95 % interval, the mean NEES
                                     per cell, the mean Gaussian CRPS (physical units); null without uncertainty
     per_step_coverage_mean, per_step_nees_mean, per_step_crps_mean   [n_t] | null   (optional) the same per frame
+    final_channel_mse_mean, final_channel_nmse_mean   {channel: float}   (optional) Eq. 18 at the final frame per
+                                    scored channel, mean over trajectories, in physical units and over the
+                                    channel standardized by its data std (comparable across channels)
+    per_step_gain_norm_mean, per_step_spread_mean     [n_t - 1]   (optional) ||K_k||_2 and the filter's spread
+                                    sqrt(tr P / r) after each step, mean over trajectories
 
 Non-finite numbers are stored as ``null`` (strict JSON). :func:`compare` pairs the records of two files
 by their key and gives the ratios B / A.
@@ -113,6 +118,14 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
         steps = getattr(result, f"step_{name}", None)
         record[f"final_{name}_mean"] = None if steps is None else _number(np.mean(steps[:, -1]))
         record[f"per_step_{name}_mean"] = None if steps is None else _numbers(np.mean(steps, axis=0))
+    if getattr(result, "final_channel_mse", None) is not None:
+        record["final_channel_mse_mean"] = {c: _number(v) for c, v in zip(result.channels, result.final_channel_mse.mean(0))}
+        record["final_channel_nmse_mean"] = {c: _number(v)
+                                             for c, v in zip(result.channels, result.final_channel_nmse.mean(0))}
+    for name in ("gain_norm", "spread"):
+        values = getattr(result, name, None)
+        if values is not None:
+            record[f"per_step_{name}_mean"] = _numbers(np.mean(values, axis=1))
     if keep_curves:
         record["per_trajectory_step_mse"] = _numbers(result.step_mse)
     return record
@@ -159,7 +172,9 @@ def _check_list(rec: dict[str, Any], name: str, where: str, length: int | None) 
     if not isinstance(values, list) or not all(_is_number(v) for v in values):
         raise ResultsError(f"{where}: {name!r} must be a list of numbers (null for non-finite), got {values!r:.80}")
     if length is not None and len(values) != length:
-        raise ResultsError(f"{where}: {name!r} has {len(values)} entries but the record's batch is {length}")
+        what = "the record's batch" if name not in ("per_step_gain_norm_mean", "per_step_spread_mean") \
+            else "the number of filter steps"
+        raise ResultsError(f"{where}: {name!r} has {len(values)} entries but {what} is {length}")
 
 
 def validate_record(rec: Any, where: str = "record") -> None:
@@ -213,6 +228,14 @@ def validate_record(rec: Any, where: str = "record") -> None:
             _check_list(rec, steps, where, None)
             if len(rec[steps]) != len(rec["per_step_mse_mean"]):
                 raise ResultsError(f"{where}: {steps!r} must have one entry per frame, like 'per_step_mse_mean'")
+    for name in ("final_channel_mse_mean", "final_channel_nmse_mean"):
+        value = rec.get(name)
+        if value is not None and (not isinstance(value, dict)
+                                  or not all(isinstance(k, str) and _is_number(v) for k, v in value.items())):
+            raise ResultsError(f"{where}: {name!r} must map channel names to numbers, got {value!r}")
+    for name in ("per_step_gain_norm_mean", "per_step_spread_mean"):
+        if rec.get(name) is not None:
+            _check_list(rec, name, where, len(rec["per_step_mse_mean"]) - 1)
 
 
 def validate(doc: Any) -> dict[str, Any]:

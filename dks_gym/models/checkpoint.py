@@ -39,6 +39,7 @@ import torch
 
 from ..atomic import atomic_path
 from ..home import data_home, ensure_writable
+from ..locks import file_lock
 from .build import build_model
 from .latent_model import LatentModel
 from .presets import MODEL_KINDS, MODEL_PRESETS, benchmark_shape
@@ -239,6 +240,27 @@ def save_checkpoint(
     return path
 
 
+def update_calibration(path: Path | str, calibration: dict[str, torch.Tensor]) -> Path:
+    """Replace the calibration tensors of the checkpoint at ``path`` (weights, Adam state, training tensors and
+    metadata kept), atomically and under the checkpoint's write lock."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    with file_lock(path, "write"):
+        raw = {}
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            metadata = f.metadata()
+            for key in f.keys():  # noqa: SIM118 (safe_open is not a mapping)
+                if not key.startswith(_CALIBRATION):
+                    raw[key] = f.get_tensor(key)
+        raw.update({_CALIBRATION + k: _plain(v) for k, v in calibration.items()})
+        with atomic_path(path) as tmp:
+            save_file(raw, str(tmp), metadata=metadata)
+            os.chmod(tmp, 0o644)
+    return path
+
+
 def _plain(t: torch.Tensor) -> torch.Tensor:
     return t.detach().to("cpu").contiguous().clone()  # clone: safetensors refuses shared storage
 
@@ -338,4 +360,5 @@ def model_from_checkpoint(checkpoint: Checkpoint | Path | str, device: str | tor
         model = build_model(meta["benchmark"], meta["model"], r=meta["r"], preset=meta["preset"], seed=None, **kwargs)
     model.load_state_dict(state)
     model.calibration = dict(checkpoint.calibration)
+    model.checkpoint_path = Path(checkpoint.path)  # where a later calibration step (the Q scale) is kept
     return model.to(device).eval()

@@ -579,6 +579,7 @@ def train_model(
         # training ones spread over the split: in-sample, so an underestimate), then stored with them.
         net.calibration = calibrate(net, dataset, held_out or _spread(n_train, 10))
         write(done)
+        net.checkpoint_path = path
         history = torch.stack(losses).cpu().numpy()
         write_loss_curves(history, None if monitor is None else monitor.stacked().numpy(),
                           loss_curve_path(path), f"{name} {model} {preset} r={r} T={T}")
@@ -639,6 +640,7 @@ def _fit_pdmd(name: str, r: int, dataset: Any, path: Path, seed: int, device: to
                           lr=None, seed=seed, complete=True, device=str(device), train_time_s=fit_time,
                           calibrated_on="train")
     save_checkpoint(path, model, meta)
+    model.checkpoint_path = path
     return TrainingResult(model.eval(), path, 0, 0, time.perf_counter() - start_time, np.zeros((0, 4), np.float32))
 
 
@@ -729,7 +731,8 @@ def calibrate(model: LatentModel, dataset: Any, trajectories: Sequence[int], spl
     mean, plus ``Q``; ``P0_exact`` that of the exact one, ``Q``. Both with a floor of 1e-6 times their mean
     variance, so that they stay definite in float32. ``reconstruction_variance`` (C, *grid) float32: the mean over
     frames of (decode(encode(x)) - x)^2 per cell in physical units, the error a decoded estimate carries even
-    with an exact latent state. Frames are encoded ``chunk`` at a time.
+    with an exact latent state. ``trajectories`` (int64): the trajectories measured on, where the filter's scale
+    of ``Q`` is tuned later (:func:`dks_gym.assimilation.tune_process_noise`). Frames are encoded ``chunk`` at a time.
     """
     device = model.stats_mean.device
     params = dataset.params(split)
@@ -764,7 +767,8 @@ def calibrate(model: LatentModel, dataset: Any, trajectories: Sequence[int], spl
     z0 = torch.cat(z0)
     spread = z0 - z0.mean(0)
     p0 = _definite(spread.T @ spread / n_train + q)
-    return {"Q": q, "P0": p0, "P0_exact": _definite(q), "reconstruction_variance": (squares / frames).float()}
+    return {"Q": q, "P0": p0, "P0_exact": _definite(q), "reconstruction_variance": (squares / frames).float(),
+            "trajectories": torch.tensor([int(i) for i in trajectories], dtype=torch.int64)}
 
 
 # Diagnostics ----------------------------------------------------------------------------------------
