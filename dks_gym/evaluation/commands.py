@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from ..benchmarks import BENCHMARKS
+from ..names import MODEL_KINDS
 from .reproduce import EXPERIMENTS
 
 
@@ -31,6 +32,8 @@ def _errors() -> tuple[type[BaseException], ...]:
               help="Output folder (default: results/BENCHMARK-PRESET).")
 @click.option("--only", "only", multiple=True, type=click.Choice(list(EXPERIMENTS)),
               help="Run only this experiment (repeatable). Default: all of them.")
+@click.option("--model", "models", multiple=True, type=click.Choice(list(MODEL_KINDS)),
+              help="Run only this model's runs (repeatable). Default: all four.")
 @click.option("--data-preset", type=click.Choice(["paper", "small"]), default="paper", show_default=True,
               help="Dataset preset to evaluate on (and to train on when a model is missing).")
 @click.option("--no-train", is_flag=True, help="Fail instead of training a missing model.")
@@ -38,7 +41,8 @@ def _errors() -> tuple[type[BaseException], ...]:
               help="Keep the runs already in OUT/results.json instead of rerunning them (continue an interrupted run).")
 @click.option("--noise-seed", type=int, default=0, show_default=True, help="Seed of the measurement noise.")
 def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None, only: tuple[str, ...],
-                      data_preset: str, no_train: bool, skip_done: bool, noise_seed: int) -> None:
+                      models: tuple[str, ...], data_preset: str, no_train: bool, skip_done: bool,
+                      noise_seed: int) -> None:
     """Run the paper's Section IV experiments on BENCHMARK; write results.json, tables.md and figures/.
 
     Experiments: main (forward vs EKF, approximate and exact IC), enkf, ensemble (n = 20/40/64), noise
@@ -51,7 +55,7 @@ def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None
 
     try:
         reproduce(benchmark.lower(), preset=preset, device=device, out=out, only=only or None,
-                  data_preset=data_preset, train=not no_train, skip_done=skip_done, noise_seed=noise_seed,
+                  models=models or None, data_preset=data_preset, train=not no_train, skip_done=skip_done, noise_seed=noise_seed,
                   log=click.echo)
     except _errors() as exc:
         raise click.ClickException(str(exc)) from exc
