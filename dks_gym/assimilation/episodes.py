@@ -371,7 +371,7 @@ TARGET_COVERAGE = 0.95
 SCALE_RANGE = (2.0**-4, 2.0**12)
 BISECTIONS = 6
 #: At most this many of the calibration trajectories are filtered per evaluation (evenly spread): the tuning
-#: costs 7 filter runs of this batch with the predictive std (about 1 min for Burgers, 4 min for the dambreak
+#: costs 7 filter runs of this batch with the predictive std (about 1 min for Burgers, 6 min for the dambreak
 #: on one core).
 MAX_TRAJECTORIES = 5
 
