@@ -353,7 +353,7 @@ def _rec(doc: dict, **criteria) -> dict | None:
     return next((r for r in doc["records"] if all(r.get(k) == v for k, v in criteria.items())), None)
 
 
-@pytest.mark.parametrize("name", ["burgers-lite", "burgers", "burgers-lite-calibrated", "dambreak"])
+@pytest.mark.parametrize("name", ["burgers-lite", "burgers", "burgers-lite-calibrated", "dambreak", "cylinder"])
 def test_committed_tables_regenerate_byte_for_byte(name: str) -> None:
     from dks_gym.evaluation.reproduce import tables_markdown
 
