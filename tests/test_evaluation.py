@@ -460,8 +460,7 @@ def test_records_hold_per_channel_errors_and_the_filter_spread(make_synthetic) -
     rows = [r for r in _section(tables_markdown(doc), "Per channel") if r[0] == "Koopman"]
     assert [r[1] for r in rows] == ["forward run", "EKF"]
     for row, rec in zip(rows, records):
-        assert row[2:-1] == [f"{rec['final_channel_nmse_mean'][c]:.3g}" if 1e-2 <= abs(rec['final_channel_nmse_mean'][c]) < 1e3
-                             else f"{rec['final_channel_nmse_mean'][c]:.2e}" for c in ds.scored_channels]
+        assert row[2:-1] == [_num(rec["final_channel_nmse_mean"][c]) for c in ds.scored_channels]
     bad = dict(records[0], final_channel_nmse_mean={"p": "x"})
     with pytest.raises(ResultsError, match="final_channel_nmse_mean"):
         validate(dict(doc, records=[bad]))

@@ -129,7 +129,8 @@ class LinearLatentModel(LatentModel):
         return self.A.to(z).expand(z.shape[0], -1, -1)
 
 
-def _linear_problem(tmp_path: Path, n_test: int = 16, n_t: int = 40, n_train: int = 2) -> tuple[LinearLatentModel, Path]:
+def _linear_problem(tmp_path: Path, n_test: int = 16, n_t: int = 40,
+                    n_train: int = 2) -> tuple[LinearLatentModel, Path]:
     """A Burgers-shaped dataset drawn from the linear model with process noise N(0, Q_TRUE I)."""
     bench = get_benchmark("burgers")
     x = bench.coords()[0]

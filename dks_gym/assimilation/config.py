@@ -98,7 +98,7 @@ class FilterConfig:
         if isinstance(self.Q, str):
             if self.Q == "paper":
                 return PAPER_Q
-            # The residual covariance times the scale tuned on held-out coverage (assimilation.episodes.tune_process_noise).
+            # The residual covariance times the scale tuned on held-out coverage (episodes.tune_process_noise).
             return _calibrated(model, "Q") * float(model.calibration.get("Q_scale", 1.0))
         return self.Q
 

@@ -246,7 +246,8 @@ class Assimilation:
         (n, B) (see :class:`~dks_gym.filters.common.Diagnostics`)."""
         d = self._filter.diagnostics
         return {"gain_norm": d.stacked("gain_norm").cpu().double().numpy(),
-                "spread": d.stacked("spread").cpu().double().numpy(),"forecast_norm": d.stacked("forecast_norm").cpu().double().numpy()
+                "spread": d.stacked("spread").cpu().double().numpy(),
+                "forecast_norm": d.stacked("forecast_norm").cpu().double().numpy()
                 if isinstance(self._filter, EKF) else None,
                 "step_seconds": np.asarray(d.wall_time, dtype=np.float64),
                 "divergence_resets": d.stacked("reset").sum(0).cpu().numpy().astype(np.int64)}

@@ -55,7 +55,8 @@ def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None
 
     try:
         reproduce(benchmark.lower(), preset=preset, device=device, out=out, only=only or None,
-                  models=models or None, data_preset=data_preset, train=not no_train, skip_done=skip_done, noise_seed=noise_seed,
+                  models=models or None, data_preset=data_preset, train=not no_train, skip_done=skip_done,
+                  noise_seed=noise_seed,
                   log=click.echo)
     except _errors() as exc:
         raise click.ClickException(str(exc)) from exc

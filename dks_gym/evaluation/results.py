@@ -119,9 +119,8 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
         record[f"final_{name}_mean"] = None if steps is None else _number(np.mean(steps[:, -1]))
         record[f"per_step_{name}_mean"] = None if steps is None else _numbers(np.mean(steps, axis=0))
     if getattr(result, "final_channel_mse", None) is not None:
-        record["final_channel_mse_mean"] = {c: _number(v) for c, v in zip(result.channels, result.final_channel_mse.mean(0))}
-        record["final_channel_nmse_mean"] = {c: _number(v)
-                                             for c, v in zip(result.channels, result.final_channel_nmse.mean(0))}
+        for name in ("final_channel_mse", "final_channel_nmse"):
+            record[f"{name}_mean"] = {c: _number(v) for c, v in zip(result.channels, getattr(result, name).mean(0))}
     for name in ("gain_norm", "spread"):
         values = getattr(result, name, None)
         if values is not None:
