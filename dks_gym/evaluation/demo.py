@@ -47,18 +47,10 @@ def demo_table(records: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def _has_q_scale(path: Path) -> bool:
-    """Whether the checkpoint at ``path`` holds a tuned process-noise scale (read without loading weights)."""
-    from safetensors import safe_open
-
-    with safe_open(str(path), framework="pt") as f:
-        return "calibration.Q_scale" in f.keys()  # noqa: SIM118 (safe_open is not a mapping)
-
-
 def first_run_message() -> str:
     """What the demo is about to do, in plain words: what it must generate and train first, and how long."""
     from ..home import data_home, dataset_path
-    from ..models.checkpoint import checkpoint_path
+    from ..models.checkpoint import calibration_names, checkpoint_path
 
     bench = get_benchmark(DEMO_BENCHMARK)
     todo = []
@@ -72,7 +64,7 @@ def first_run_message() -> str:
                     "min for each neural one on one CPU core, seconds for pDMD)")
     run = "then running the forward run, the EKF and the EnKF of each model on the 10 test trajectories"
     paths = [checkpoint_path(DEMO_BENCHMARK, kind, "lite", 32, 1, data_preset="paper") for kind in MODEL_ORDER]
-    untuned = len(untrained) if untrained else sum(not _has_q_scale(p) for p in paths)
+    untuned = len(untrained) if untrained else sum("Q_scale" not in calibration_names(p) for p in paths)
     if untuned:
         run += " (first tuning each filter's process noise once, about 1 min per model)"
     if not todo:

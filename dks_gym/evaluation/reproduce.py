@@ -192,12 +192,17 @@ def _key(experiment: str, run: Run) -> tuple:
 
 
 def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Any) -> bool:
-    """Whether the checkpoint of model ``key`` (kind, r, T) is complete in the data home."""
+    """Whether ``load_model`` finds model ``key`` (kind, r, T) trained in the data home: complete, and trained
+    with the preset's current schedule."""
     from ..models.checkpoint import checkpoint_path, read_metadata
+    from ..models.training import is_stale
 
     kind, r, T = key
     path = checkpoint_path(benchmark, kind, preset, r, T, data_preset=dataset.preset or "custom")
-    return path.exists() and bool(read_metadata(path).get("complete"))
+    if not path.exists():
+        return False
+    meta = read_metadata(path)
+    return bool(meta.get("complete")) and not is_stale(meta, benchmark, kind, preset)
 
 
 def _save(previous: dict[str, Any] | None, benchmark: str, preset: str, identity: dict[str, Any],

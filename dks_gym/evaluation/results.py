@@ -166,13 +166,12 @@ def _is_number(x: Any, *, nullable: bool = True) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
-def _check_list(rec: dict[str, Any], name: str, where: str, length: int | None) -> None:
+def _check_list(rec: dict[str, Any], name: str, where: str, length: int | None,
+                what: str = "the record's batch") -> None:
     values = rec[name]
     if not isinstance(values, list) or not all(_is_number(v) for v in values):
         raise ResultsError(f"{where}: {name!r} must be a list of numbers (null for non-finite), got {values!r:.80}")
     if length is not None and len(values) != length:
-        what = "the record's batch" if name not in ("per_step_gain_norm_mean", "per_step_spread_mean") \
-            else "the number of filter steps"
         raise ResultsError(f"{where}: {name!r} has {len(values)} entries but {what} is {length}")
 
 
@@ -234,7 +233,7 @@ def validate_record(rec: Any, where: str = "record") -> None:
             raise ResultsError(f"{where}: {name!r} must map channel names to numbers, got {value!r}")
     for name in ("per_step_gain_norm_mean", "per_step_spread_mean"):
         if rec.get(name) is not None:
-            _check_list(rec, name, where, len(rec["per_step_mse_mean"]) - 1)
+            _check_list(rec, name, where, len(rec["per_step_mse_mean"]) - 1, "the number of filter steps")
 
 
 def validate(doc: Any) -> dict[str, Any]:

@@ -315,6 +315,15 @@ def read_metadata(path: Path | str) -> dict[str, Any]:
     return json.loads(raw)
 
 
+def calibration_names(path: Path | str) -> set[str]:
+    """The names of the calibration tensors in the checkpoint at ``path`` (``Q``, ``Q_scale`` ...), without
+    reading any tensor."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        return {k[len(_CALIBRATION):] for k in f.keys() if k.startswith(_CALIBRATION)}  # noqa: SIM118
+
+
 def read_checkpoint(path: Path | str, *, optimizer: bool = True, training: bool = True) -> Checkpoint:
     """Read a checkpoint: the model tensors, and the Adam state and training tensors unless switched off."""
     from safetensors import safe_open

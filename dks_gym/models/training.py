@@ -645,6 +645,13 @@ def _fit_pdmd(name: str, r: int, dataset: Any, path: Path, seed: int, device: to
 
 
 # The single entry point -------------------------------------------------------------------------------
+def is_stale(meta: dict[str, Any], benchmark: str, model: str, preset: str) -> bool:
+    """Whether a finished checkpoint (its ``meta``) was trained with another schedule than ``preset``'s current
+    one (an older dks-gym, custom steps): :func:`load_model` retrains such a cached checkpoint."""
+    return (bool(meta.get("complete")) and model != "pdmd"
+            and meta.get("preset_schedule") != training_schedule(benchmark, preset).record())
+
+
 def load_model(
     benchmark: Any,
     model: str,
@@ -681,8 +688,7 @@ def load_model(
     if path.exists():
         meta = read_metadata(path)
         check_metadata(meta, path, benchmark=name, model=model, r=r, preset=preset, T=T, dataset=dataset)
-        stale = (cached and bool(meta.get("complete")) and model != "pdmd"
-                 and meta.get("preset_schedule") != training_schedule(name, preset).record())
+        stale = cached and is_stale(meta, name, model, preset)
         if meta.get("complete") and not stale:
             return model_from_checkpoint(path, _device(device))
         if stale:  # trained by an older dks-gym, or with other settings than the preset's
