@@ -204,6 +204,18 @@ def test_tuned_q_scale_recovers_the_true_process_noise(tmp_path: Path) -> None:
     assert ensure_process_noise_scale(model, ds) == scale
 
 
+def test_tuning_refuses_bad_input_clearly(models: dict, burgers_small: Path) -> None:
+    ds = Dataset(burgers_small)
+    model = copy.deepcopy(models["koopman"])
+    with pytest.raises(ValueError, match="target coverage must lie in"):
+        tune_process_noise(model, ds, target=1.5)
+    model.calibration = {k: v for k, v in model.calibration.items() if k != "trajectories"}
+    with pytest.raises(ValueError, match="calibrate it first"):
+        tune_process_noise(model, ds)
+    with pytest.warns(UserWarning, match="used unscaled"):  # an older checkpoint: scale 1, said so
+        assert ensure_process_noise_scale(model, ds) == 1.0
+
+
 def test_q_scale_is_written_into_the_checkpoint(models: dict, tmp_path: Path) -> None:
     model = copy.deepcopy(models["koopman"])
     path = save_checkpoint(tmp_path / "m.safetensors", model, {"note": "kept"}, training_tensors={"x": torch.ones(2)})
