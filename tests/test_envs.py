@@ -181,6 +181,9 @@ def test_sensors_by_reset_option_or_grid_coordinates_and_info(burgers_small: Pat
     assert info["sensors"].tolist() == cells.tolist() and obs.shape == (3,)
     np.testing.assert_array_equal(obs, env.unwrapped.true_state[0, cells])  # noise_level 0: exact readings
     assert info["mu"] == float(env.dataset.params("test")[2]) and info["trajectory"] == 2
+    env.dataset.params("test")[2] = -1.0  # the dataset hands out copies: a caller cannot change the env's mu
+    assert env.step(0)[4]["mu"] == info["mu"] == float(env.dataset.params("test")[2])
+    assert env.reset(options={"trajectory": 0})[1]["mu"] == float(env.dataset.params("test")[0])
     by_coords = dks_gym.SensingEnv("burgers", preset="small", sensors=cells[:, None])
     assert by_coords.reset(seed=1)[1]["sensors"].tolist() == cells.tolist()
 

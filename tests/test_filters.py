@@ -130,6 +130,32 @@ def test_ekf_equals_filterpy_kalman_filter_on_linear_gaussian_system(constant_ja
     assert ekf.diagnostics.max_forecast_norm.item() == pytest.approx(np.linalg.norm(sys["A"], 2), rel=1e-12)
 
 
+def test_spectral_norm_equals_the_largest_singular_value():
+    """The diagnostics take ||M||_2 from the smaller Gram matrix; it must match numpy's SVD, both orientations."""
+    from dks_gym.filters.common import spectral_norm
+
+    torch.manual_seed(0)
+    for shape in [(7, 32, 16), (7, 16, 32), (5, 32, 32), (3, 1, 8)]:
+        M = torch.randn(shape)
+        reference = np.linalg.norm(M.double().numpy(), 2, axis=(1, 2))
+        np.testing.assert_allclose(spectral_norm(M).numpy(), reference, rtol=2e-6)
+        np.testing.assert_allclose(spectral_norm(M.double()).numpy(), reference, rtol=1e-12)
+
+
+def test_a_constant_forecast_norm_follows_a_reset_with_another_batch():
+    """The norm of a constant F is computed once per episode: a reset with another batch size recomputes it."""
+    sys = linear_system()
+    ekf = EKF(linear_dynamics(sys["A"], sys["H"], constant_jacobians=True), sigma=0.1, Q=1e-3)
+    expected = np.linalg.norm(sys["A"], 2)
+    for batch in (1, 3):
+        ekf.reset(torch.tensor(sys["z0"]).expand(batch, -1).clone())
+        for y in sys["ys"][:3]:
+            ekf.step(torch.tensor(y).expand(batch, -1))
+        norms = ekf.diagnostics.stacked("forecast_norm")
+        assert norms.shape == (3, batch)
+        np.testing.assert_allclose(norms.numpy(), expected, rtol=1e-12)
+
+
 def test_ekf_equals_filterpy_extended_kalman_filter_on_nonlinear_map():
     sys = linear_system(seed=1)
     A, H = sys["A"], sys["H"]

@@ -174,6 +174,71 @@ def test_decoder_jacobian_equals_central_differences_of_the_decoder():
         torch.testing.assert_close(G[..., i], fd, rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.parametrize("preset", ["lite", "paper"])
+def test_sensor_local_jacobian_equals_central_differences_of_the_whole_decoder(preset):
+    """The filters' observation Jacobian decodes only each sensor's window of the bottleneck; it must equal the
+    derivative of the whole decode at the sensors, at the grid's edges (where the window is clamped) too."""
+    model = build_model("burgers", "mlp", r=4, preset=preset, seed=0).double()
+    assert model.decoder.window() == (9,)  # 2 * 4 + 1 of the 128 bottleneck cells
+    torch.manual_seed(5)
+    z = torch.randn(3, 4, dtype=torch.float64)
+    mu = _mu_grid("burgers", 3)
+    rng = np.random.default_rng(0)
+    sensors = np.stack([np.r_[0, 1, 7, 8, 1015, 1022, 1023, rng.choice(1024, 9, replace=False)] for _ in range(3)])
+    jacobian = model.filter_observe_jacobian(mu, lambda n: sensors.repeat(n // 3, axis=0), "u")
+    J = jacobian(z)
+    assert J.shape == (3, 16, 4)
+    h = 1e-6
+    for i in range(4):
+        dz = torch.zeros_like(z)
+        dz[:, i] = h
+        with torch.no_grad():
+            fd = (model.decode(z + dz, mu) - model.decode(z - dz, mu)).flatten(2)[:, 0] / (2 * h)
+        torch.testing.assert_close(J[..., i], fd.gather(1, torch.as_tensor(sensors)), rtol=1e-6, atol=1e-9)
+    # The values it decodes on the windows are the whole decode's.
+    x = z + model.embed_param(mu)
+    values, _ = model.decoder.sensor_jacobian(x, torch.as_tensor(sensors), 0)
+    with torch.no_grad():
+        whole = model.decoder(x)[:, 0].gather(1, torch.as_tensor(sensors))
+    torch.testing.assert_close(values, whole, rtol=1e-12, atol=1e-12)
+
+
+def test_sensor_window_narrower_than_the_receptive_field_is_wrong(monkeypatch):
+    """The check above can fail: one bottleneck cell too few and interior sensors read cropped windows."""
+    model = build_model("burgers", "mlp", r=4, preset="lite", seed=0).double()
+    cells = torch.tensor([[300, 517, 700]])
+    x = torch.randn(1, 4, dtype=torch.float64)
+    _, right = model.decoder.sensor_jacobian(x, cells, 0)
+    monkeypatch.setattr(type(model.decoder), "receptive_radius", property(lambda self: 1))
+    _, wrong = model.decoder.sensor_jacobian(x, cells, 0)
+    assert not torch.allclose(right, wrong, rtol=1e-6, atol=0)
+
+
+def test_sensor_local_jacobian_is_used_only_where_a_window_saves_work():
+    assert build_model("burgers", "koopman", preset="lite").decoder.window() is not None
+    for benchmark in ("cylinder", "dambreak", "sphere"):  # 8 x 8 and 4 x 4 x 4 bottlenecks: one window is all
+        model = _lite(benchmark, "koopman")
+        assert model.decoder.window() is None
+        assert model.filter_observe_jacobian(torch.ones(1), lambda n: np.zeros((n, 2), np.int64),
+                                             model.shape.channels[0]) is None
+
+
+@pytest.mark.parametrize("benchmark", BENCHMARKS)
+def test_inference_decoder_equals_the_training_one(benchmark):
+    """Out of training mode the decoder runs blocks of rows and stride-1 transposed convolutions as plain ones;
+    the numbers must be the training-mode decoder's (torch's ConvTranspose on the whole batch) to round-off."""
+    model = _lite(benchmark, "mlp")
+    rows = 2 + (1 << 17) // int(np.prod(model.grid))  # more rows than one block holds
+    z = torch.randn(rows, model.r)
+    with torch.no_grad():
+        fast = model.decoder(z)
+        model.train()
+        reference = model.decoder(z)
+        model.eval()
+    assert fast.shape == reference.shape
+    torch.testing.assert_close(fast, reference, rtol=1e-5, atol=1e-6)
+
+
 # xLSTM one-step evaluation -------------------------------------------------------------------------------
 def test_xlstm_refuses_sequences():
     model = _lite("burgers", "xlstm", r=8)

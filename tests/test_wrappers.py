@@ -258,6 +258,25 @@ def test_one_ekf_step_recomputed_by_hand(models: dict, kind: str) -> None:
     torch.testing.assert_close(env.filter.cov[0], Pa, rtol=1e-3, atol=1e-5)
 
 
+def test_sensor_local_jacobian_filters_like_autodiff_through_the_whole_decoder(
+        models: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The EKF with the model's sensor-local observation Jacobian follows the one that differentiates the whole
+    decoder (the generic path, and the one before it existed) to float32 round-off over a whole episode."""
+    def episode() -> tuple[np.ndarray, np.ndarray]:
+        venv = LatentFilterVectorEnv("burgers", 3, model=models["mlp"], filter="ekf", uncertainty=False,
+                                     preset="small")
+        venv.reset(seed=0)
+        mses = [venv.step(np.zeros(3, dtype=np.int64))[4]["mse"] for _ in range(40)]
+        return np.array(mses), venv.filter.mean.numpy().copy()
+
+    assert models["mlp"].decoder.window() is not None
+    local_mse, local_mean = episode()
+    monkeypatch.setattr(type(models["mlp"]), "filter_observe_jacobian", lambda self, mu, rows, channel: None)
+    whole_mse, whole_mean = episode()
+    np.testing.assert_allclose(local_mse, whole_mse, rtol=1e-4)
+    np.testing.assert_allclose(local_mean, whole_mean, rtol=1e-4, atol=1e-5)
+
+
 def test_koopman_operator_computed_once_per_episode(models: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     """For a fixed mu the Koopman K(mu) is built at reset and handed to the EKF as a constant tensor."""
     model = models["koopman"]

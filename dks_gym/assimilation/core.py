@@ -153,7 +153,7 @@ class Assimilation:
 
         return LatentDynamics(bind_param(model.forecast, mu), bind_param(observe, mu),
                               forecast_jacobian=model.filter_forecast_jacobian(mu),
-                              observe_jacobian=model.filter_observe_jacobian(rows, channel))
+                              observe_jacobian=model.filter_observe_jacobian(mu, rows, channel))
 
     @torch_threads("assimilate")
     def start(self, envs: Sequence[SensingEnv], seed: int, sensors: np.ndarray | None = None) -> Snapshot:

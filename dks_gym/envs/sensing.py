@@ -104,6 +104,7 @@ class SensingEnv(gym.Env):
 
         self._sigma_cache: dict[int, float] = {}
         self._trajectory = -1
+        self._mu = float("nan")
         self._k = -1
         self._sensors = self._default_sensors
         self._frames: np.ndarray | None = None
@@ -209,6 +210,7 @@ class SensingEnv(gym.Env):
             self.dataset.check_finite(values, self.split, traj, channels=(observed,))
             self._frames, self._observed = None, values
         self._trajectory = traj
+        self._mu = float(self.dataset.params(self.split)[traj])
         if traj not in self._sigma_cache:
             self._sigma_cache[traj] = noise_sigma(self._observed, self.fluid_mask, self.noise_level)
 
@@ -234,7 +236,7 @@ class SensingEnv(gym.Env):
     @property
     def mu(self) -> float:
         """Physical parameter of the current trajectory."""
-        return float(self.dataset.params(self.split)[self._trajectory])
+        return self._mu
 
     @property
     def time_index(self) -> int:

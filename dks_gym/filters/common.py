@@ -260,8 +260,14 @@ def psd_sqrt(Q: Tensor) -> Tensor:
 
 
 def spectral_norm(M: Tensor) -> Tensor:
-    """Largest singular value of each matrix in a ``(B, a, b)`` stack."""
-    return torch.linalg.matrix_norm(M, ord=2)
+    """Largest singular value of each matrix in a ``(B, a, b)`` stack.
+
+    The square root of the largest eigenvalue of the smaller Gram matrix: the same number as an SVD to a few
+    units of round-off relative to it (only the small singular values lose accuracy in the Gram), 3-4x faster
+    for the stacks the filters record every step (benchmarks/perf.py).
+    """
+    gram = M.mT @ M if M.shape[-1] <= M.shape[-2] else M @ M.mT
+    return torch.linalg.eigvalsh(gram)[..., -1].clamp_min(0.0).sqrt()
 
 
 # ------------------------------------------------------------------------------------------- Jacobians

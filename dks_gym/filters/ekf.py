@@ -123,6 +123,7 @@ class EKF(SequentialFilter):
             raise ValueError(f"jacobian_method must be 'auto', 'vmap' or 'loop', got {jacobian_method!r}")
         self.jacobian_method = jacobian_method
         self.state: GaussianState | None = None
+        self._constant_forecast_norm: Tensor | None = None
 
     def reset(self, z0: Tensor, P0: CovarianceSpec | None = None) -> None:
         """Start from mean ``z0`` ``(B, r)`` and covariance ``P0``.
@@ -133,6 +134,15 @@ class EKF(SequentialFilter):
         z0 = torch.as_tensor(z0).detach().clone()
         self._initial = GaussianState(z0, self._initial_covariance(P0, z0))
         self.state = GaussianState(z0.clone(), self._initial.cov.clone())
+        self._constant_forecast_norm: Tensor | None = None
+
+    def _forecast_norm(self, F: Tensor) -> Tensor:
+        """``||F||_2`` per element; computed once per episode when the dynamics give F as a constant (Koopman K)."""
+        if not isinstance(self.dynamics.forecast_jacobian, Tensor):
+            return spectral_norm(torch.nan_to_num(F, nan=0.0, posinf=0.0, neginf=0.0))
+        if self._constant_forecast_norm is None:
+            self._constant_forecast_norm = spectral_norm(torch.nan_to_num(F, nan=0.0, posinf=0.0, neginf=0.0))
+        return self._constant_forecast_norm
 
     @property
     def mean(self) -> Tensor:
@@ -175,7 +185,7 @@ class EKF(SequentialFilter):
         if self.record_diagnostics:
             self._record(
                 timer,
-                forecast_norm=spectral_norm(torch.nan_to_num(F, nan=0.0, posinf=0.0, neginf=0.0)),
+                forecast_norm=self._forecast_norm(F),
                 gain_norm=gain_norm,
                 spread=(new.cov.diagonal(dim1=-2, dim2=-1).mean(-1)).sqrt(),
                 reset=restart,

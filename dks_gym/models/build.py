@@ -60,7 +60,8 @@ def build_model(
     statistics and the cell type from a :class:`dks_gym.dataset.Dataset`; otherwise the benchmark's
     paper dt and an identity normalization are used (fine for counting parameters and for tests).
     Weights are initialized from ``seed`` without touching the global RNG. A pDMD model is returned
-    unfitted: call ``.fit(...)`` or ``.fit_dataset(ds)``.
+    unfitted: call ``.fit(...)`` or ``.fit_dataset(ds)``. The model is in eval mode, as a loaded one is
+    (the training loop switches to training mode and back).
     """
     shape = benchmark_shape(benchmark)
     if model not in MODEL_KINDS:
@@ -76,11 +77,11 @@ def build_model(
         stats_std = dataset.stats_std if stats_std is None else stats_std
         cell_type = dataset.cell_type if cell_type is None else cell_type
     if model == PDMD.kind:
-        return PDMD(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std)
+        return PDMD(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std).eval()
     cls, latent_map = NEURAL_MAPS[model]
     devices: Sequence[Any] = []
     with torch.random.fork_rng(devices=devices):
         if seed is not None:
             torch.manual_seed(seed)
         return cls(shape, model, latent_map, r, preset, dt=dt, stats_mean=stats_mean, stats_std=stats_std,
-                   cell_type=cell_type)
+                   cell_type=cell_type).eval()

@@ -10,7 +10,7 @@ Every model is a ``torch.nn.Module`` with attributes ``benchmark``, ``kind`` ("k
     observe(z, mu, sensors, channel)                            -> S(decode(z)) (B, m)   (Eq. 12)
     rollout(z0, mu, n_steps)                                    -> (B, n_steps + 1, r)
     filter_forecast_jacobian(mu)            dF/dz as the filters take it: a constant (B, r, r) or a callable
-    filter_observe_jacobian(rows, channel)  dh/dz as the filters take it: None (autodiff) or a callable
+    filter_observe_jacobian(mu, rows, channel)  dh/dz as the filters take it: None (autodiff) or a callable
     decoder_jacobian(z, mu)                                     -> d decode/dz (B, C, n_cells, r)
 
 A model owns its linearization: the Koopman model hands the filters K(mu) (cached per mu), pDMD A~(mu)
@@ -26,7 +26,6 @@ and :meth:`NeuralLatentModel.reconstruction_target` keeps, so a training loss on
 
 from __future__ import annotations
 
-import warnings
 from collections import OrderedDict
 from typing import Any, Callable
 
@@ -34,7 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .backbones import ConvDecoder, ConvEncoder, ParametricEncoder
+from .backbones import ConvDecoder, ConvEncoder, ParametricEncoder, quiet_forward_ad
 from .embedding import ParameterEmbedding
 from .presets import EMBEDDING_HIDDEN_LAYERS, BenchmarkShape, backbone_spec
 
@@ -171,11 +170,14 @@ class LatentModel(nn.Module):
         batch = mu.shape[0]
         return lambda z: self.forecast_jacobian(z, mu.repeat_interleave(z.shape[0] // batch, dim=0))
 
-    def filter_observe_jacobian(self, sensor_rows: Callable[[int], np.ndarray], channel: str) -> Map | None:
-        """dh/dz of h(z) = S(decode(z)) for the filters: None means autodiff through the decoder.
+    def filter_observe_jacobian(self, mu: torch.Tensor, sensor_rows: Callable[[int], np.ndarray],
+                                channel: str) -> Map | None:
+        """dh/dz of h(z) = S(decode(z)) with ``mu`` (B,) bound, for the filters: None means autodiff through the
+        decoder.
 
-        ``sensor_rows(n)`` gives the (n, m) sensor indices of n stacked rows at the current step. Models
-        with a linear decoder return a callable giving the exact (n, m, r) Jacobian.
+        ``sensor_rows(n)`` gives the (n, m) sensor indices of n stacked rows at the current step (row j belongs
+        to element j // (n // B)). Models with a linear decoder return a callable giving the exact (n, m, r)
+        Jacobian; the neural models one that decodes only the cells the sensors depend on, where that saves work.
         """
         return None
 
@@ -190,11 +192,7 @@ class LatentModel(nn.Module):
             return self.decode(x, mu).flatten(2)
 
         cols = []
-        with warnings.catch_warnings():
-            # torch's forward-mode AD loads its own decompositions through torch.jit.script, which torch itself
-            # deprecates (torch/_decomp/decompositions_for_jvp.py): nothing to change on our side.
-            warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.* is deprecated",
-                                    category=DeprecationWarning)
+        with quiet_forward_ad():
             for i in range(z.shape[1]):
                 tangent = torch.zeros_like(z)
                 tangent[:, i] = 1.0
@@ -319,6 +317,26 @@ class NeuralLatentModel(LatentModel):
         return torch.cat([x, ct], dim=1)
 
     # Interface ------------------------------------------------------------------------------------
+    def filter_observe_jacobian(self, mu: torch.Tensor, sensor_rows: Callable[[int], np.ndarray],
+                                channel: str) -> Map | None:
+        """The sensor-local Jacobian (:meth:`ConvDecoder.sensor_jacobian`) where a sensor's receptive field is a
+        window of the bottleneck (Burgers: 7 of 128 cells); None (autodiff through the full decoder) where it
+        covers it all (the 2D and 3D grids)."""
+        if self.decoder.window() is None:
+            return None
+        c = self._channel_index(channel)
+        with torch.no_grad():
+            s = self.embed_param(self._param(mu, mu.shape[0]))
+        batch = mu.shape[0]
+
+        def jacobian(z: torch.Tensor) -> torch.Tensor:
+            cells = torch.as_tensor(sensor_rows(z.shape[0]), device=z.device)
+            x = z.to(self._dtype) + s.repeat_interleave(z.shape[0] // batch, dim=0)
+            _, jac = self.decoder.sensor_jacobian(x, cells, c)
+            return (jac * self.stats_std[c].to(jac.dtype)).to(z.dtype)  # decode() de-normalizes: x std + mean
+
+        return jacobian
+
     def encode(self, x: ArrayLike, mu: ArrayLike) -> torch.Tensor:
         """z = E_phi(x, mu) + e_omega(mu) from physical fields (B, C, *grid)."""
         xin = self.encoder_input(x)

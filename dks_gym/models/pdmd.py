@@ -428,7 +428,8 @@ class PDMD(LatentModel):
         with torch.no_grad():
             return self.online_operator(mu).to(mu)
 
-    def filter_observe_jacobian(self, sensor_rows: Callable[[int], np.ndarray], channel: str) -> Callable:
+    def filter_observe_jacobian(self, mu: torch.Tensor, sensor_rows: Callable[[int], np.ndarray],
+                                channel: str) -> Callable:
         """h is affine, so its Jacobian S diag(std) U_r at the current sensors is exact, (n, m, r)."""
 
         def jacobian(z: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,366 @@
+"""Speed of the filtered environments against their floors, as ratios measured side by side in one process.
+
+Burgers (grid 1024), ``small`` data, the ``lite`` Koopman model with r = 32 (untrained weights: the cost of a
+step does not depend on them), 16 sensors, the paper's Q and P0, one torch thread unless ``--threads``. Every
+pair of timings alternates rep by rep (A, B, A, B, ...) so that a neighbour's load hits both alike; the JSON
+keeps every rep's median and the ratio. Sections:
+
+- ``machine``: platform, torch, threads, the load average before and after, and the measured float32 matmul
+  peak (a 1024^3 product), which the FLOP floors divide by;
+- ``env``: the bare ``SensingEnv`` against its replay floor (frames in memory plus the same seeded noise);
+- ``ekf`` / ``enkf``: one filter step at batch B against its floor (the forecast, the observation and, for the
+  EKF, its Jacobian at the sensors, and the Kalman algebra, each timed alone) and, for the EKF, against the FLOP
+  floor: (m + 1) decoder passes at one element (the issue's count: one decode and one reverse pass per sensor)
+  at the matmul peak; the EKF step also with its diagnostics switched off;
+- ``jacobian``: the decoder Jacobian at the sensors, sensor-local against autodiff through the whole decoder;
+- ``vector``: the batched vector env (``uncertainty=False``, as for RL) at N envs against N separate
+  ``LatentFilter`` envs, per env-step, EKF and EnKF (n = 20);
+- ``algebra``: the EKF update with a linear model against filterpy's ``KalmanFilter`` at batch 1 and 256;
+- ``training``: one Adam step of the Koopman model (lite at batch 32, paper at batch 256), FLOPs counted by
+  ``torch.utils.flop_counter`` and the achieved rate against the matmul peak.
+
+    OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+import dks_gym  # noqa: F401  (registers the env ids)
+from dks_gym.assimilation import FilterConfig
+from dks_gym.atomic import atomic_write_text
+from dks_gym.dataset import generate_dataset, load_dataset
+from dks_gym.envs.noise import measurement_noise
+from dks_gym.filters import EKF, LatentDynamics
+from dks_gym.filters.common import GaussianState, forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
+from dks_gym.filters.ekf import ekf_forecast, ekf_update
+from dks_gym.filters.enkf import enkf_forecast, enkf_update
+from dks_gym.models import build_model
+from dks_gym.models.training import training_loss
+from dks_gym.wrappers import LatentFilter, LatentFilterVectorEnv
+
+
+def median_ms(fn: Callable[[], Any], inner: int) -> float:
+    """Median wall time of ``fn`` in ms over ``inner`` calls (one call first, untimed, to warm caches)."""
+    fn()
+    times = []
+    for _ in range(inner):
+        tic = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - tic)
+    return 1e3 * float(np.median(times))
+
+
+def interleaved(fns: dict[str, Callable[[], Any]], reps: int, inner: int) -> dict[str, list[float]]:
+    """Each function's median ms, rep by rep in turn: {name: [rep medians]}."""
+    out: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(reps):
+        for name, fn in fns.items():
+            out[name].append(median_ms(fn, inner))
+    return out
+
+
+def med(values: list[float]) -> float:
+    return float(np.median(values))
+
+
+def machine(threads: int) -> dict[str, Any]:
+    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(), "python": platform.python_version(), "torch": torch.__version__,
+            "torch_threads": threads, "loadavg_start": list(os.getloadavg())}
+
+
+def matmul_peak(reps: int) -> dict[str, Any]:
+    """float32 GFLOP/s of a 1024^3 matrix product (the best rep: the core's reachable peak)."""
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    times = [median_ms(lambda: a @ b, 3) for _ in range(max(reps, 3))]
+    return {"gflops": 2 * 1024**3 / (min(times) * 1e-3) / 1e9, "ms": times}
+
+
+def env_section(reps: int, steps: int) -> dict[str, Any]:
+    """The bare env's steps per second against its replay floor (resets, which read the trajectory, untimed)."""
+    env = SensingEnvFactory()
+    env.reset(seed=0, options={"trajectory": 0})
+    frames = np.asarray(env.dataset.trajectory("test", 0))[:, env.benchmark.observed_index]
+    sensors, sigma, n_cells = env.sensors, env.sigma, env.n_cells
+    n = min(steps, len(frames) - 1)
+
+    def bare() -> float:
+        env.reset(seed=0, options={"trajectory": 0})
+        tic = time.perf_counter()
+        for _ in range(n):
+            env.step(0)
+        return time.perf_counter() - tic
+
+    def floor() -> float:
+        tic = time.perf_counter()
+        for k in range(1, n + 1):
+            (frames[k].ravel()[sensors] + measurement_noise(0, "test", 0, k, sensors, sigma, n_cells)).astype(
+                np.float32)
+        return time.perf_counter() - tic
+
+    rates: dict[str, list[float]] = {"env": [], "floor": []}
+    for _ in range(reps):
+        for name, fn in (("env", bare), ("floor", floor)):
+            rates[name].append(float(np.median([n / fn() for _ in range(5)])))
+    return {"steps": n, "env_steps_per_s": rates["env"], "floor_steps_per_s": rates["floor"],
+            "env_over_floor_rate": med(rates["env"]) / med(rates["floor"])}
+
+
+def SensingEnvFactory() -> gym.Env:  # noqa: N802 - reads like the class it builds
+    return gym.make("DKS/Burgers-v0", preset="small").unwrapped
+
+
+def decoder_flops(model: Any) -> int:
+    """FLOPs of one decode of one element (torch's flop counter: matmuls and convolutions)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    z, mu = torch.zeros(1, model.r), torch.full((1,), 0.5)
+    with FlopCounterMode(display=False) as counter, torch.no_grad():
+        model.decode(z, mu)
+    return int(counter.get_total_flops())
+
+
+def started_vector_env(model: Any, n: int, kind: str, n_members: int = 20) -> LatentFilterVectorEnv:
+    config = FilterConfig(kind=kind, Q="paper", P0="paper", n_members=n_members)
+    venv = LatentFilterVectorEnv("burgers", n, model=model, config=config, uncertainty=False, preset="small")
+    venv.reset(seed=0)
+    return venv
+
+
+def ekf_section(model: Any, batch: int, reps: int, inner: int, peak: float) -> dict[str, Any]:
+    """One EKF step at ``batch`` against its floor and the FLOP floor; diagnostics on and off."""
+    venv = started_vector_env(model, batch, "ekf")
+    readings = torch.as_tensor(np.stack([e._observe() for e in venv.envs]))
+    filt: EKF = venv.filter
+    dyn = filt.dynamics
+    z, P = filt.mean.clone(), filt.cov.clone()
+    state = GaussianState(z, P)
+    _, J = observe_with_jacobian(dyn, z)
+    h0 = dyn.observe(z)
+    F = dyn.forecast_jacobian
+    linear = LatentDynamics(lambda x: x, lambda x: h0, forecast_jacobian=F, observe_jacobian=J)
+    sigma2 = torch.tensor([e.sigma for e in venv.envs]) ** 2
+
+    def step(diagnostics: bool) -> Callable[[], Any]:
+        def run() -> None:
+            filt.record_diagnostics = diagnostics
+            filt.state = GaussianState(z, P)
+            filt.step(readings)
+        return run
+
+    def algebra() -> None:
+        new, _ = ekf_forecast(state, linear, 1e-4, check=False)
+        ekf_update(new, readings, linear, sigma2, check=False)
+
+    times = interleaved({"step": step(True), "step_no_diagnostics": step(False),
+                         "forecast": lambda: forecast_with_jacobian(dyn, z),
+                         "observe_and_jacobian": lambda: observe_with_jacobian(dyn, z),
+                         "algebra": algebra}, reps, inner)
+    filt.record_diagnostics = True
+    floor = [f + o + a for f, o, a in zip(times["forecast"], times["observe_and_jacobian"], times["algebra"])]
+    m = readings.shape[1]
+    flop_floor_ms = (m + 1) * decoder_flops(model) * batch / (peak * 1e9) * 1e3
+    return {"batch": batch, "ms": times, "floor_ms": floor, "flop_floor_ms": flop_floor_ms,
+            "step_over_floor": med(times["step"]) / med(floor),
+            "step_over_flop_floor": med(times["step"]) / flop_floor_ms,
+            "diagnostics_on_over_off": med(times["step"]) / med(times["step_no_diagnostics"])}
+
+
+def enkf_section(model: Any, batch: int, n_members: int, reps: int, inner: int) -> dict[str, Any]:
+    """One EnKF step at ``batch`` against its floor (forecast, observation of every member, analysis)."""
+    venv = started_vector_env(model, batch, "enkf", n_members)
+    readings = torch.as_tensor(np.stack([e._observe() for e in venv.envs]))
+    filt = venv.filter
+    dyn = filt.dynamics
+    E = filt.ensemble.clone()
+    predicted = dyn.observe(E.reshape(-1, E.shape[-1])).reshape(E.shape[0], E.shape[1], -1)
+    linear = LatentDynamics(lambda x: x, lambda x: predicted.reshape(x.shape[0], -1))
+    R = torch.tensor([e.sigma for e in venv.envs]) ** 2
+
+    def step() -> None:
+        filt.ensemble = E
+        filt.step(readings)
+
+    def algebra() -> None:
+        forecast = enkf_forecast(E, linear, 1e-4, filt.generator, check=False)
+        enkf_update(forecast, readings, linear, R, filt.generator, check=False)
+
+    flat = E.reshape(-1, E.shape[-1])
+    times = interleaved({"step": step, "forecast": lambda: dyn.forecast(flat), "observe": lambda: dyn.observe(flat),
+                         "algebra": algebra}, reps, inner)
+    floor = [f + o + a for f, o, a in zip(times["forecast"], times["observe"], times["algebra"])]
+    return {"batch": batch, "n_members": n_members, "ms": times, "floor_ms": floor,
+            "step_over_floor": med(times["step"]) / med(floor)}
+
+
+def jacobian_section(model: Any, batch: int, reps: int, inner: int) -> dict[str, Any]:
+    """The decoder Jacobian at 16 sensors: the model's sensor-local one against autodiff through the decoder."""
+    venv = started_vector_env(model, batch, "ekf")
+    dyn = venv.filter.dynamics
+    z = venv.filter.mean.clone()
+    local = lambda: observe_with_jacobian(dyn, z)  # noqa: E731
+    full = lambda: value_and_jacobian(dyn.observe, z)  # noqa: E731
+    error = float((local()[1] - full()[1]).abs().max() / full()[1].abs().max())
+    times = interleaved({"sensor_local": local, "autodiff_full_decoder": full}, reps, inner)
+    return {"batch": batch, "ms": times, "speedup": med(times["autodiff_full_decoder"]) / med(times["sensor_local"]),
+            "max_relative_difference": error}
+
+
+def vector_section(model: Any, sizes: list[int], kind: str, reps: int, steps: int) -> list[dict[str, Any]]:
+    """Per env-step ms of the vector env at each N against one ``LatentFilter`` (N separate envs cost N times it)."""
+    config = FilterConfig(kind=kind, Q="paper", P0="paper")
+    single = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, config=config, uncertainty=False)
+    single.reset(seed=0)
+    last = single.unwrapped.dataset.n_frames - 1  # steps per episode: resets are not env-steps, so stay inside one
+    rows = []
+    for n in sizes:
+        venv = started_vector_env(model, n, kind)
+        actions = np.zeros(n, dtype=np.int64)
+        state = {"single": 0, "vector": 0}
+
+        def run_single() -> None:
+            if state["single"] >= last:
+                single.reset(seed=0)
+                state["single"] = 0
+            single.step(0)
+            state["single"] += 1
+
+        def run_vector() -> None:
+            if state["vector"] >= last - 1:  # the vector env restarts the batch inside its last step
+                venv.reset(seed=0)
+                state["vector"] = 0
+            venv.step(actions)
+            state["vector"] += 1
+
+        times = interleaved({"separate": run_single, "vector": run_vector}, reps, steps)
+        per_env = [t / n for t in times["vector"]]
+        rows.append({"filter": kind, "num_envs": n, "separate_ms_per_env_step": times["separate"],
+                     "vector_ms_per_env_step": per_env,
+                     "speedup": med(times["separate"]) / med(per_env)})
+        venv.close()
+    return rows
+
+
+def algebra_section(reps: int, inner: int) -> list[dict[str, Any]]:
+    """The EKF update of a linear-Gaussian model (r = 32, m = 16): ours batched against filterpy in a loop."""
+    from filterpy.kalman import KalmanFilter
+
+    rng = np.random.default_rng(0)
+    r, m = 32, 16
+    F = np.linalg.qr(rng.standard_normal((r, r)))[0] * 0.99
+    H = rng.standard_normal((m, r))
+    rows = []
+    for batch in (1, 256):
+        y = rng.standard_normal((batch, m))
+        kfs = []
+        for _ in range(batch):
+            kf = KalmanFilter(dim_x=r, dim_z=m)
+            kf.F, kf.H, kf.Q, kf.R, kf.P = F, H, 1e-4 * np.eye(r), 0.04 * np.eye(m), np.eye(r)
+            kfs.append(kf)
+        dyn = LatentDynamics(lambda x: x @ torch.as_tensor(F, dtype=torch.float32).T,
+                             lambda x: x @ torch.as_tensor(H, dtype=torch.float32).T,
+                             forecast_jacobian=torch.as_tensor(F, dtype=torch.float32),
+                             observe_jacobian=torch.as_tensor(H, dtype=torch.float32))
+        state = GaussianState(torch.zeros(batch, r), torch.eye(r).expand(batch, r, r).clone())
+        yt = torch.as_tensor(y, dtype=torch.float32)
+
+        def ours() -> None:
+            new, _ = ekf_forecast(state, dyn, 1e-4, check=False)
+            ekf_update(new, yt, dyn, 0.04, check=False)
+
+        def filterpy() -> None:
+            for kf, yi in zip(kfs, y):
+                kf.x, kf.P = np.zeros((r, 1)), np.eye(r)
+                kf.predict()
+                kf.update(yi)
+
+        times = interleaved({"ours": ours, "filterpy": filterpy}, reps, inner)
+        rows.append({"batch": batch, "ms": times, "filterpy_over_ours": med(times["filterpy"]) / med(times["ours"])})
+    return rows
+
+
+def training_section(ds: Any, presets: list[str], reps: int, inner: int, peak: float) -> list[dict[str, Any]]:
+    """One Adam step's achieved FLOP rate against the matmul peak (Koopman, T = 1)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    rows = []
+    fields = np.asarray(ds.fields("train")[:, :2], dtype=np.float32)  # (n_traj, 2, C, grid): windows of T = 1
+    params = ds.params("train")
+    for preset, batch in (("lite", 32), ("paper", 256)):
+        if preset not in presets:
+            continue
+        model = build_model("burgers", "koopman", 32, preset, dataset=ds, seed=0)
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
+        idx = np.arange(batch) % len(fields)
+        x, mu = torch.from_numpy(fields[idx]), torch.from_numpy(params[idx])
+
+        def step() -> None:
+            loss, _ = training_loss(model, x, mu)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+
+        with FlopCounterMode(display=False) as counter:
+            step()
+        flops = int(counter.get_total_flops())
+        times = interleaved({"step": step}, reps, inner)["step"]
+        rate = flops / (med(times) * 1e-3) / 1e9
+        rows.append({"preset": preset, "batch": batch, "flops": flops, "ms": times, "gflops": rate,
+                     "fraction_of_peak": rate / peak})
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reps", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--sizes", nargs="+", type=int, default=[1, 16, 64, 256])
+    parser.add_argument("--quick", action="store_true", help="tiny sizes, one rep: checks that every section runs")
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "perf.json"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    reps, inner, batch, sizes, steps = args.reps, 5, 256, args.sizes, 20
+    presets = ["lite", "paper"]
+    if args.quick:
+        reps, inner, batch, sizes, steps, presets = 1, 1, 4, [1, 4], 2, ["lite"]
+    generate_dataset("burgers", "small", progress=False)
+    ds = load_dataset("burgers", "small")
+    model = build_model("burgers", "koopman", 32, "lite", dataset=ds, seed=0)
+    result: dict[str, Any] = {"machine": machine(args.threads)}
+    peak = matmul_peak(reps)
+    result["machine"]["matmul_gflops"] = peak["gflops"]
+    sections = {
+        "env": lambda: env_section(reps, 99 if not args.quick else 5),
+        "jacobian": lambda: jacobian_section(model, batch, reps, inner),
+        "ekf": lambda: ekf_section(model, batch, reps, inner, peak["gflops"]),
+        "enkf": lambda: enkf_section(model, batch, 20, reps, inner),
+        "algebra": lambda: algebra_section(reps, inner),
+        "vector": lambda: vector_section(model, sizes, "ekf", reps, steps)
+        + vector_section(model, sizes, "enkf", reps, steps),
+        "training": lambda: training_section(ds, presets, reps, 1 if args.quick else 3, peak["gflops"]),
+    }
+    for name, run in sections.items():
+        tic = time.perf_counter()
+        result[name] = run()
+        print(f"{name}: {time.perf_counter() - tic:.1f} s", flush=True)
+    result["machine"]["loadavg_end"] = list(os.getloadavg())
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, json.dumps(result, indent=1) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
