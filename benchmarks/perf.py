@@ -17,7 +17,8 @@ keeps every rep's median and the ratio. Sections:
   ``LatentFilter`` envs, per env-step, EKF and EnKF (n = 20);
 - ``algebra``: the EKF update with a linear model against filterpy's ``KalmanFilter`` at batch 1 and 256;
 - ``training``: one Adam step of the Koopman model (lite at batch 32, paper at batch 256), FLOPs counted by
-  ``torch.utils.flop_counter`` and the achieved rate against the matmul peak.
+  ``torch.utils.flop_counter`` and the achieved rate against the matmul peak, in training mode (how dks-gym
+  trains) and with the decoder's inference formulation (what switching training over to it would give).
 
     OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
@@ -225,10 +226,11 @@ def vector_section(model: Any, sizes: list[int], kind: str, reps: int, steps: in
     single.reset(seed=0)
     last = single.unwrapped.dataset.n_frames - 1  # steps per episode: resets are not env-steps, so stay inside one
     rows = []
+    state = {"single": 0}
     for n in sizes:
         venv = started_vector_env(model, n, kind)
         actions = np.zeros(n, dtype=np.int64)
-        state = {"single": 0, "vector": 0}
+        state["vector"] = 0
 
         def run_single() -> None:
             if state["single"] >= last:
@@ -312,13 +314,23 @@ def training_section(ds: Any, presets: list[str], reps: int, inner: int, peak: f
             loss.backward()
             optimizer.step()
 
+        def training_mode() -> None:
+            model.train()  # torch's ConvTranspose on the whole batch: what dks-gym trains with
+            step()
+
+        def inference_formulation() -> None:
+            model.eval()  # the decoder's plain-convolution blocks (no dropout or batch norm: the same loss)
+            step()
+
+        model.train()
         with FlopCounterMode(display=False) as counter:
             step()
         flops = int(counter.get_total_flops())
-        times = interleaved({"step": step}, reps, inner)["step"]
-        rate = flops / (med(times) * 1e-3) / 1e9
+        times = interleaved({"training_mode": training_mode, "inference_formulation": inference_formulation},
+                            reps, inner)
+        rate = {name: flops / (med(t) * 1e-3) / 1e9 for name, t in times.items()}
         rows.append({"preset": preset, "batch": batch, "flops": flops, "ms": times, "gflops": rate,
-                     "fraction_of_peak": rate / peak})
+                     "fraction_of_peak": {name: value / peak for name, value in rate.items()}})
     return rows
 
 

@@ -179,7 +179,7 @@ def test_sensor_local_jacobian_equals_central_differences_of_the_whole_decoder(p
     """The filters' observation Jacobian decodes only each sensor's window of the bottleneck; it must equal the
     derivative of the whole decode at the sensors, at the grid's edges (where the window is clamped) too."""
     model = build_model("burgers", "mlp", r=4, preset=preset, seed=0).double()
-    assert model.decoder.window() == (9,)  # 2 * 4 + 1 of the 128 bottleneck cells
+    assert model.decoder.window() == (5,)  # 2 * 2 + 1 of the 128 bottleneck cells
     torch.manual_seed(5)
     z = torch.randn(3, 4, dtype=torch.float64)
     mu = _mu_grid("burgers", 3)
@@ -215,12 +215,31 @@ def test_sensor_window_narrower_than_the_receptive_field_is_wrong(monkeypatch):
 
 
 def test_sensor_local_jacobian_is_used_only_where_a_window_saves_work():
-    assert build_model("burgers", "koopman", preset="lite").decoder.window() is not None
-    for benchmark in ("cylinder", "dambreak", "sphere"):  # 8 x 8 and 4 x 4 x 4 bottlenecks: one window is all
+    assert build_model("burgers", "koopman", preset="lite").decoder.window() == (5,)
+    for benchmark in ("cylinder", "dambreak"):  # 7 x 7 of an 8 x 8 bottleneck: one whole decode per sensor is cheaper
         model = _lite(benchmark, "koopman")
         assert model.decoder.window() is None
         assert model.filter_observe_jacobian(torch.ones(1), lambda n: np.zeros((n, 2), np.int64),
                                              model.shape.channels[0]) is None
+    assert _lite("sphere", "koopman").decoder.window() == (3, 3, 3)
+
+
+def test_sphere_sensor_local_jacobian_equals_autodiff_through_the_whole_decoder():
+    from dks_gym.filters.common import value_and_jacobian
+
+    model = _lite("sphere", "mlp", r=4)
+    n_cells = int(np.prod(model.grid))
+    sensors = np.array([[0, 1, 64 * 64 * 30 + 64 * 17 + 40, n_cells - 1]])  # two corners, the interior, an edge
+    rows = lambda n: sensors.repeat(n, axis=0)  # noqa: E731
+    mu = _mu_grid("sphere", 1).float()
+    z = torch.randn(1, 4)
+
+    def observe(zz: torch.Tensor) -> torch.Tensor:
+        return model.decode(zz, mu).flatten(2)[:, 0].gather(1, torch.as_tensor(rows(zz.shape[0])))
+
+    _, reference = value_and_jacobian(observe, z)
+    local = model.filter_observe_jacobian(mu, rows, model.shape.channels[0])(z)
+    torch.testing.assert_close(local, reference, rtol=1e-5, atol=1e-7 * float(reference.abs().max()))
 
 
 @pytest.mark.parametrize("benchmark", BENCHMARKS)

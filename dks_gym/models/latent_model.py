@@ -320,7 +320,7 @@ class NeuralLatentModel(LatentModel):
     def filter_observe_jacobian(self, mu: torch.Tensor, sensor_rows: Callable[[int], np.ndarray],
                                 channel: str) -> Map | None:
         """The sensor-local Jacobian (:meth:`ConvDecoder.sensor_jacobian`) where a sensor's receptive field is a
-        window of the bottleneck (Burgers: 7 of 128 cells); None (autodiff through the full decoder) where it
+        window of the bottleneck (Burgers: 5 of 128 cells); None (autodiff through the full decoder) where it
         covers it all (the 2D and 3D grids)."""
         if self.decoder.window() is None:
             return None
