@@ -5,8 +5,8 @@ step does not depend on them), 16 sensors, the paper's Q and P0, one torch threa
 pair of timings alternates rep by rep (A, B, A, B, ...) so that a neighbour's load hits both alike; the JSON
 keeps every rep's median and the ratio. Sections:
 
-- ``machine``: platform, torch, threads, the load average before and after, and the measured float32 matmul
-  peak (a 1024^3 product), which the FLOP floors divide by;
+- ``machine``: platform, torch, threads, the load average before and after, and the float32 matmul peak (a
+  1024^3 product) at the start; the FLOP floors divide by the same product timed beside the step they judge;
 - ``env``: the bare ``SensingEnv`` against its replay floor (frames in memory plus the same seeded noise);
 - ``ekf`` / ``enkf``: one filter step at batch B against its floor (the forecast, the observation and, for the
   EKF, its Jacobian at the sensors, and the Kalman algebra, each timed alone) and, for the EKF, against the FLOP
@@ -82,11 +82,23 @@ def machine(threads: int) -> dict[str, Any]:
             "torch_threads": threads, "loadavg_start": list(os.getloadavg())}
 
 
+_A, _B = torch.randn(1024, 1024), torch.randn(1024, 1024)
+MATMUL_FLOPS = 2 * 1024**3
+
+
+def matmul() -> None:
+    """The peak's yardstick: a 1024^3 float32 matrix product."""
+    _A @ _B
+
+
+def gflops(flops: float, ms: float) -> float:
+    return flops / (ms * 1e-3) / 1e9
+
+
 def matmul_peak(reps: int) -> dict[str, Any]:
     """float32 GFLOP/s of a 1024^3 matrix product (the best rep: the core's reachable peak)."""
-    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
-    times = [median_ms(lambda: a @ b, 3) for _ in range(max(reps, 3))]
-    return {"gflops": 2 * 1024**3 / (min(times) * 1e-3) / 1e9, "ms": times}
+    times = [median_ms(matmul, 3) for _ in range(max(reps, 3))]
+    return {"gflops": gflops(MATMUL_FLOPS, min(times)), "ms": times}
 
 
 def env_section(reps: int, steps: int) -> dict[str, Any]:
@@ -140,7 +152,7 @@ def started_vector_env(model: Any, n: int, kind: str, n_members: int = 20) -> La
     return venv
 
 
-def ekf_section(model: Any, batch: int, reps: int, inner: int, peak: float) -> dict[str, Any]:
+def ekf_section(model: Any, batch: int, reps: int, inner: int) -> dict[str, Any]:
     """One EKF step at ``batch`` against its floor and the FLOP floor; diagnostics on and off."""
     venv = started_vector_env(model, batch, "ekf")
     readings = torch.as_tensor(np.stack([e._observe() for e in venv.envs]))
@@ -168,12 +180,13 @@ def ekf_section(model: Any, batch: int, reps: int, inner: int, peak: float) -> d
     times = interleaved({"step": step(True), "step_no_diagnostics": step(False),
                          "forecast": lambda: forecast_with_jacobian(dyn, z),
                          "observe_and_jacobian": lambda: observe_with_jacobian(dyn, z),
-                         "algebra": algebra}, reps, inner)
+                         "algebra": algebra, "matmul": matmul}, reps, inner)
     filt.record_diagnostics = True
+    peak = gflops(MATMUL_FLOPS, med(times["matmul"]))  # measured beside the step, under the same load
     floor = [f + o + a for f, o, a in zip(times["forecast"], times["observe_and_jacobian"], times["algebra"])]
     m = readings.shape[1]
     flop_floor_ms = (m + 1) * decoder_flops(model) * batch / (peak * 1e9) * 1e3
-    return {"batch": batch, "ms": times, "floor_ms": floor, "flop_floor_ms": flop_floor_ms,
+    return {"batch": batch, "ms": times, "floor_ms": floor, "matmul_gflops": peak, "flop_floor_ms": flop_floor_ms,
             "step_over_floor": med(times["step"]) / med(floor),
             "step_over_flop_floor": med(times["step"]) / flop_floor_ms,
             "diagnostics_on_over_off": med(times["step"]) / med(times["step_no_diagnostics"])}
@@ -199,8 +212,16 @@ def enkf_section(model: Any, batch: int, n_members: int, reps: int, inner: int) 
         enkf_update(forecast, readings, linear, R, filt.generator, check=False)
 
     flat = E.reshape(-1, E.shape[-1])
-    times = interleaved({"step": step, "forecast": lambda: dyn.forecast(flat), "observe": lambda: dyn.observe(flat),
-                         "algebra": algebra}, reps, inner)
+
+    def forecast() -> None:
+        with torch.no_grad():  # as the filter calls it
+            dyn.forecast(flat)
+
+    def observe() -> None:
+        with torch.no_grad():
+            dyn.observe(flat)
+
+    times = interleaved({"step": step, "forecast": forecast, "observe": observe, "algebra": algebra}, reps, inner)
     floor = [f + o + a for f, o, a in zip(times["forecast"], times["observe"], times["algebra"])]
     return {"batch": batch, "n_members": n_members, "ms": times, "floor_ms": floor,
             "step_over_floor": med(times["step"]) / med(floor)}
@@ -293,7 +314,7 @@ def algebra_section(reps: int, inner: int) -> list[dict[str, Any]]:
     return rows
 
 
-def training_section(ds: Any, presets: list[str], reps: int, inner: int, peak: float) -> list[dict[str, Any]]:
+def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list[dict[str, Any]]:
     """One Adam step's achieved FLOP rate against the matmul peak (Koopman, T = 1)."""
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -326,11 +347,12 @@ def training_section(ds: Any, presets: list[str], reps: int, inner: int, peak: f
         with FlopCounterMode(display=False) as counter:
             step()
         flops = int(counter.get_total_flops())
-        times = interleaved({"training_mode": training_mode, "inference_formulation": inference_formulation},
-                            reps, inner)
-        rate = {name: flops / (med(t) * 1e-3) / 1e9 for name, t in times.items()}
+        times = interleaved({"training_mode": training_mode, "inference_formulation": inference_formulation,
+                             "matmul": matmul}, reps, inner)
+        peak = gflops(MATMUL_FLOPS, med(times.pop("matmul")))  # measured beside the steps, under the same load
+        rate = {name: gflops(flops, med(t)) for name, t in times.items()}
         rows.append({"preset": preset, "batch": batch, "flops": flops, "ms": times, "gflops": rate,
-                     "fraction_of_peak": {name: value / peak for name, value in rate.items()}})
+                     "matmul_gflops": peak, "fraction_of_peak": {name: value / peak for name, value in rate.items()}})
     return rows
 
 
@@ -356,12 +378,12 @@ def main() -> None:
     sections = {
         "env": lambda: env_section(reps, 99 if not args.quick else 5),
         "jacobian": lambda: jacobian_section(model, batch, reps, inner),
-        "ekf": lambda: ekf_section(model, batch, reps, inner, peak["gflops"]),
+        "ekf": lambda: ekf_section(model, batch, reps, inner),
         "enkf": lambda: enkf_section(model, batch, 20, reps, inner),
         "algebra": lambda: algebra_section(reps, inner),
         "vector": lambda: vector_section(model, sizes, "ekf", reps, steps)
         + vector_section(model, sizes, "enkf", reps, steps),
-        "training": lambda: training_section(ds, presets, reps, 1 if args.quick else 3, peak["gflops"]),
+        "training": lambda: training_section(ds, presets, reps, 1 if args.quick else 3),
     }
     for name, run in sections.items():
         tic = time.perf_counter()

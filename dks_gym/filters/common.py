@@ -52,8 +52,10 @@ class LatentDynamics:
     bound (Eq. 13). ``observe(z)``: ``(N, r) -> (N, m)``, the decoded sensor values ``S(G(z))``.
     ``forecast_jacobian`` / ``observe_jacobian``: ``None`` (autodiff), a callable ``z -> (B, r, r)`` /
     ``(B, m, r)``, or a constant tensor (``(r, r)`` or ``(B, r, r)``, e.g. the Koopman matrix ``K(mu)``;
-    ``(m, r)`` or ``(B, m, r)``, e.g. pDMD's ``S U_r``). ``stacked_rows``: whether the callables accept
-    ``k * B`` rows (see the module docstring).
+    ``(m, r)`` or ``(B, m, r)``, e.g. pDMD's ``S U_r``); a callable ``observe_jacobian`` may also return the
+    pair ``(h(z), J)`` when it computes the values on the way (the neural models' sensor-local Jacobian), which
+    spares the filter a decode. ``stacked_rows``: whether the callables accept ``k * B`` rows (see the module
+    docstring).
     """
 
     forecast: Map
@@ -342,8 +344,8 @@ def _with_jacobian(
     if spec is None:
         return value_and_jacobian(fn, z, method)
     with torch.no_grad():
-        out = fn(z)
         J = spec if isinstance(spec, Tensor) else spec(z)
+        out, J = J if isinstance(J, tuple) else (fn(z), J)
     if rows is None:
         rows = out.shape[-1] if out.ndim == 2 else -1
     return out, _constant_jacobian(J, batch, rows, r, z, what)

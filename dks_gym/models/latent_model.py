@@ -177,7 +177,8 @@ class LatentModel(nn.Module):
 
         ``sensor_rows(n)`` gives the (n, m) sensor indices of n stacked rows at the current step (row j belongs
         to element j // (n // B)). Models with a linear decoder return a callable giving the exact (n, m, r)
-        Jacobian; the neural models one that decodes only the cells the sensors depend on, where that saves work.
+        Jacobian; the neural models one giving h(z) and the Jacobian together from only the cells the sensors
+        depend on, where that saves work (see :class:`~dks_gym.filters.LatentDynamics`).
         """
         return None
 
@@ -319,9 +320,9 @@ class NeuralLatentModel(LatentModel):
     # Interface ------------------------------------------------------------------------------------
     def filter_observe_jacobian(self, mu: torch.Tensor, sensor_rows: Callable[[int], np.ndarray],
                                 channel: str) -> Map | None:
-        """The sensor-local Jacobian (:meth:`ConvDecoder.sensor_jacobian`) where a sensor's receptive field is a
-        window of the bottleneck (Burgers: 5 of 128 cells); None (autodiff through the full decoder) where it
-        covers it all (the 2D and 3D grids)."""
+        """h(z) and its Jacobian from each sensor's window of the bottleneck (:meth:`ConvDecoder.sensor_jacobian`:
+        5 of 128 cells on Burgers, 3 x 3 x 3 of 4 x 4 x 4 on the sphere), a callable ``z -> (h, J)``; None
+        (autodiff through the full decoder) where the window is most of the bottleneck (the 2D grids)."""
         if self.decoder.window() is None:
             return None
         c = self._channel_index(channel)
@@ -329,11 +330,13 @@ class NeuralLatentModel(LatentModel):
             s = self.embed_param(self._param(mu, mu.shape[0]))
         batch = mu.shape[0]
 
-        def jacobian(z: torch.Tensor) -> torch.Tensor:
+        def jacobian(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            """h(z) and dh/dz at the current sensors, both from the sensors' windows."""
             cells = torch.as_tensor(sensor_rows(z.shape[0]), device=z.device)
             x = z.to(self._dtype) + s.repeat_interleave(z.shape[0] // batch, dim=0)
-            _, jac = self.decoder.sensor_jacobian(x, cells, c)
-            return (jac * self.stats_std[c].to(jac.dtype)).to(z.dtype)  # decode() de-normalizes: x std + mean
+            values, jac = self.decoder.sensor_jacobian(x, cells, c)
+            std, mean = self.stats_std[c].to(jac.dtype), self.stats_mean[c].to(jac.dtype)
+            return (values * std + mean).to(z.dtype), (jac * std).to(z.dtype)  # decode() de-normalizes: x std + mean
 
         return jacobian
 
