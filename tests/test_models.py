@@ -410,3 +410,21 @@ def test_encoder_adds_the_parameter_embedding_as_a_residual(benchmark):
         torch.testing.assert_close(z, backbone + model.embed_param(mu), rtol=0, atol=1e-12)
         torch.testing.assert_close(z2 - z, model.embed_param(mu2) - model.embed_param(mu), rtol=0, atol=1e-12)
         assert (model.embed_param(mu2) - model.embed_param(mu)).abs().max() > 1e-3  # the embedding does depend on mu
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_sensor_local_jacobian_and_inference_decoder_on_cuda_match_cpu():
+    model = build_model("burgers", "mlp", r=4, preset="lite", seed=0).double()
+    z = torch.randn(3, 4, dtype=torch.float64)
+    mu = _mu_grid("burgers", 3)
+    sensors = np.stack([np.r_[0, 5, 511, 1023]] * 3)
+    rows = lambda n: sensors.repeat(n // 3, axis=0)  # noqa: E731
+    out = {}
+    for device in ("cpu", "cuda"):
+        m = model.to(device)
+        h, J = m.filter_observe_jacobian(mu.to(device), rows, "u")(z.to(device))
+        with torch.no_grad():
+            fields = m.decode(z.to(device), mu.to(device))
+        out[device] = (h.cpu(), J.cpu(), fields.cpu())
+    for a, b in zip(out["cuda"], out["cpu"]):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
