@@ -297,3 +297,80 @@ def test_damaged_data_block_is_refused_at_reset_naming_the_file(make_synthetic, 
     for part in (str(path), "is damaged", "trajectory 1", "split 'test'", "delete it"):
         assert part in message, message
     assert isinstance(err.value.__cause__, OSError)
+
+
+# Sensor faults ----------------------------------------------------------------------------------------
+def _faulty_episode(faults, seed=3, n_sensors=16):
+    env = dks_gym.SensingEnv("burgers", preset="small", n_sensors=n_sensors, faults=faults)
+    obs, infos = _episode(env, seed=seed, options={"trajectory": 1})
+    return obs, np.stack([i["mask"] for i in infos]), env
+
+
+def test_no_faults_gives_the_plain_readings_and_a_full_mask(burgers_small: Path) -> None:
+    plain, mask, _ = _faulty_episode(None)
+    off, _, _ = _faulty_episode({"dropout": 0.0})
+    np.testing.assert_array_equal(plain, off)
+    assert mask.all()
+
+
+def test_faults_are_reproducible_from_the_seed_and_leave_the_truth_alone(burgers_small: Path) -> None:
+    faults = dks_gym.envs.SensorFaults(dropout=0.2, failure_rate=0.02, drift=0.01, quantization=0.05)
+    a, mask_a, env = _faulty_episode(faults)
+    b, mask_b, _ = _faulty_episode(faults)
+    np.testing.assert_array_equal(a, b)  # NaNs in the same places
+    np.testing.assert_array_equal(mask_a, mask_b)
+    np.testing.assert_array_equal(np.isnan(a), ~mask_a)  # the mask says which readings are missing
+    c, mask_c, _ = _faulty_episode(faults, seed=4)
+    assert not np.array_equal(mask_a, mask_c)
+    np.testing.assert_array_equal(env.true_state, env.dataset.trajectory("test", 1)[-1])
+
+
+def test_each_fault_model(burgers_small: Path) -> None:
+    clean, _, _ = _faulty_episode(None)
+    n_t = len(clean)
+    # Dropout: each reading lost independently with probability p.
+    _, mask, _ = _faulty_episode({"dropout": 0.3}, n_sensors=64)
+    assert abs((~mask).mean() - 0.3) < 4 * np.sqrt(0.3 * 0.7 / mask.size)
+    # Failure: a failed slot stays failed; at rate 1 every slot fails at the first step.
+    _, mask, _ = _faulty_episode({"failure_rate": 0.05}, n_sensors=64)
+    assert np.all(np.diff(mask.astype(int), axis=0) <= 0) and 0 < (~mask[-1]).sum() < 64
+    _, mask, _ = _faulty_episode({"failure_rate": 1.0})
+    assert mask[0].all() and not mask[1:].any()
+    # Bias drift: a random walk from 0 whose steps have the given standard deviation.
+    drifted, _, _ = _faulty_episode({"drift": 0.02}, n_sensors=64)
+    clean64, _, _ = _faulty_episode(None, n_sensors=64)
+    bias = drifted.astype(np.float64) - clean64
+    np.testing.assert_allclose(bias[0], 0.0, atol=1e-6)
+    assert abs(np.diff(bias, axis=0).std() - 0.02) < 0.002
+    # Saturation: readings clipped to the range.
+    low, high = np.quantile(clean, [0.2, 0.8])
+    saturated, _, _ = _faulty_episode({"saturation": (low, high)})
+    np.testing.assert_allclose(saturated, np.clip(clean, low, high), rtol=1e-6)
+    # Quantization: multiples of the resolution, within half of it.
+    quantized, _, _ = _faulty_episode({"quantization": 0.1})
+    np.testing.assert_allclose(quantized / 0.1, np.round(quantized / 0.1), atol=1e-4)
+    assert np.abs(quantized - clean).max() <= 0.05 + 1e-6
+    # Latency: the reading of d frames earlier; nothing before the first d frames.
+    late, mask, _ = _faulty_episode({"latency": 2})
+    assert not mask[:2].any() and mask[2:].all()
+    np.testing.assert_array_equal(late[2:], clean[: n_t - 2])
+    # Slow sensors: the named slots read every k-th frame only.
+    slow, mask, _ = _faulty_episode({"slow_sensors": (0, 5), "slow_every": 3})
+    frames = np.arange(n_t)
+    np.testing.assert_array_equal(mask[:, 0], frames % 3 == 0)
+    np.testing.assert_array_equal(mask[:, 5], frames % 3 == 0)
+    assert mask[:, [1, 2, 3, 4, 6]].all()
+    np.testing.assert_array_equal(slow[mask], clean[mask])
+
+
+@pytest.mark.parametrize("faults, match", [
+    ({"dropuot": 0.1}, "unknown sensor faults"),
+    ({"dropout": 1.5}, "dropout must be"),
+    ({"saturation": (1.0, 0.0)}, "low < high"),
+    ({"latency": -1}, "latency must be"),
+    ({"slow_sensors": (16,), "slow_every": 2}, "beyond"),
+    ("dropout", "faults must be"),
+])
+def test_bad_faults_are_refused_clearly(burgers_small: Path, faults, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        dks_gym.SensingEnv("burgers", preset="small", n_sensors=16, faults=faults)

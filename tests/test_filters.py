@@ -592,3 +592,74 @@ def test_cuda_matches_cpu(kind):
         out[device] = (f.mean.cpu(), f.cov.cpu())
     torch.testing.assert_close(out["cuda"][0], out["cpu"][0], rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(out["cuda"][1], out["cpu"][1], rtol=1e-10, atol=1e-10)
+
+
+# ------------------------------------------------------------------------------- missing readings
+
+
+@pytest.mark.parametrize("constant_jacobians", [True, False])
+def test_masked_ekf_update_equals_filterpy_with_the_rows_present(constant_jacobians):
+    """A reading marked missing drops its row of H and its row and column of R: filterpy's update with the
+    reduced H and R (a full R, so the cross terms matter) is the reference, element by element."""
+    sys = linear_system(seed=21)
+    A, H, Q, R, P0, z0 = sys["A"], sys["H"], sys["Q"], sys["R"], sys["P0"], sys["z0"]
+    masks = np.array([[True, False, True], [False, False, True], [True, True, True]])
+    ekf = EKF(linear_dynamics(A, H, constant_jacobians=constant_jacobians), R=torch.tensor(R), Q=torch.tensor(Q))
+    ekf.reset(torch.tensor(z0).expand(3, -1).clone(), torch.tensor(P0))
+    y = np.tile(sys["ys"][0], (3, 1))
+    with pytest.raises(ValueError, match="mask"):  # NaN without a mask is refused, saying what to pass
+        ekf.step(torch.tensor(np.where(masks, y, np.nan)))
+    ekf.step(torch.tensor(np.where(masks, y, np.nan)), mask=torch.tensor(masks))
+    for b, present in enumerate(masks):
+        kf = KalmanFilter(dim_x=4, dim_z=int(present.sum()))
+        kf.x, kf.P, kf.F, kf.Q = z0.copy(), P0.copy(), A, Q
+        kf.H, kf.R = H[present], R[np.ix_(present, present)]
+        kf.predict()
+        kf.update(y[b][present])
+        np.testing.assert_allclose(ekf.mean[b].numpy(), kf.x, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(ekf.cov[b].numpy(), kf.P, rtol=0, atol=1e-10)
+
+
+def test_masked_enkf_update_equals_a_direct_computation_with_the_rows_present():
+    """The EnKF analysis with readings missing, against numpy with the reduced observation: same ensemble, same
+    perturbation draws (a reading's perturbation does not depend on which others are present)."""
+    sys = linear_system(seed=23)
+    H, R = sys["H"], sys["R"]
+    rng = np.random.default_rng(0)
+    batch, n, r, m = 2, 8, 4, 3
+    E = rng.standard_normal((batch, n, r))
+    y = rng.standard_normal((batch, m))
+    masks = np.array([[True, False, True], [False, True, False]])
+    dyn = linear_dynamics(sys["A"], H, constant_jacobians=False)
+    analysis, _ = enkf_update(torch.tensor(E), torch.tensor(np.where(masks, y, np.nan)), dyn, torch.tensor(R),
+                              torch.Generator().manual_seed(5), mask=torch.tensor(masks))
+    Z = torch.randn((batch, n, m), generator=torch.Generator().manual_seed(5), dtype=F64).numpy()
+    for b, p in enumerate(masks):
+        predicted = E[b] @ H[p].T
+        A_dev, Y_dev = E[b] - E[b].mean(0), predicted - predicted.mean(0)
+        C_zy, C_yy = A_dev.T @ Y_dev / (n - 1), Y_dev.T @ Y_dev / (n - 1)
+        K = C_zy @ np.linalg.inv(C_yy + R[np.ix_(p, p)])
+        eps = Z[b][:, p] @ np.linalg.cholesky(R[np.ix_(p, p)]).T
+        eps = (eps - eps.mean(0)) * np.sqrt(n / (n - 1))
+        expected = E[b] + (y[b][p] + eps - predicted) @ K.T
+        np.testing.assert_allclose(analysis[b].numpy(), expected, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "enkf"])
+def test_an_episode_without_readings_is_the_forward_run(kind):
+    sys = linear_system(seed=22)
+    dyn = linear_dynamics(sys["A"], sys["H"], constant_jacobians=False)
+    nothing = torch.zeros(2, 3, dtype=torch.bool)
+
+    def run(readings: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        f = EKF(dyn, sigma=0.5, Q=1e-3) if kind == "ekf" else EnKF(dyn, sigma=0.5, Q=1e-3, n_members=10)
+        f.reset(torch.tensor(sys["z0"]).expand(2, -1).clone())
+        for _ in range(10):
+            if readings:
+                f.step(torch.full((2, 3), float("nan"), dtype=F64), mask=nothing)
+            else:
+                f.step(assimilate=False)
+        return f.mean, f.cov
+
+    for a, b in zip(run(True), run(False)):
+        assert torch.equal(a, b)

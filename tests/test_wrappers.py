@@ -277,6 +277,29 @@ def test_sensor_local_jacobian_filters_like_autodiff_through_the_whole_decoder(
     np.testing.assert_allclose(local_mean, whole_mean, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.filterwarnings("ignore:.*not within the observation space:UserWarning")  # NaN readings, by design
+@pytest.mark.parametrize("filt", ["ekf", "enkf"])
+def test_missing_readings_through_the_wrapper(models: dict, filt: str) -> None:
+    """Faulty sensors reach the filter as NaN readings: with every reading lost the EKF episode is the forward
+    run (the EnKF's is its ensemble forecast: tests/test_filters.py); with some lost the filter assimilates the
+    rest (the MSE differs from both the forward run and the full filter)."""
+    def episode(faults, kind: str) -> tuple[list[float], np.ndarray]:
+        env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small", faults=faults), model=models["mlp"],
+                           filter=kind, uncertainty=False)
+        rewards, info = _run(env, seed=0)
+        return rewards, env.filter.mean.numpy().copy()
+
+    forward, forward_mean = episode(None, "forward")
+    lost, lost_mean = episode({"dropout": 1.0}, filt)
+    if filt == "ekf":
+        assert lost == forward
+        np.testing.assert_array_equal(lost_mean, forward_mean)
+    full, _ = episode(None, filt)
+    assert lost != full
+    half, _ = episode({"dropout": 0.5}, filt)
+    assert np.all(np.isfinite(half)) and half != full and half != forward
+
+
 def test_koopman_operator_computed_once_per_episode(models: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     """For a fixed mu the Koopman K(mu) is built at reset and handed to the EKF as a constant tensor."""
     model = models["koopman"]

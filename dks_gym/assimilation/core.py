@@ -177,12 +177,16 @@ class Assimilation:
     @torch_threads("assimilate")
     def step(self, envs: Sequence[SensingEnv], readings: np.ndarray, sensors: np.ndarray) -> Snapshot:
         """Forecast (Eqs. 13-14), update with ``readings`` (B, m) taken at ``sensors`` (B, m) unless this is
-        the forward run (Eqs. 15-17), decode the mean and score it against the envs' truth (Eq. 18)."""
+        the forward run (Eqs. 15-17), decode the mean and score it against the envs' truth (Eq. 18).
+
+        A missing reading (NaN, as a faulty sensor reports it) is left out of the update; an element with none
+        present only forecasts."""
         if self._filter is None:
             raise RuntimeError("call reset() before step()")
         self._sensors.current = np.asarray(sensors)
         y = torch.as_tensor(np.asarray(readings), dtype=self.dtype, device=self.device)
-        self._filter.step(y, assimilate=self.config.assimilates)
+        present = torch.isfinite(y)
+        self._filter.step(y, assimilate=self.config.assimilates, mask=None if bool(present.all()) else present)
         return self._snapshot(envs, with_diagnostics=True)
 
     def _truth(self, envs: Sequence[SensingEnv]) -> torch.Tensor:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from gymnasium.envs.registration import register, registry
 
 from ..benchmarks import BENCHMARKS
+from .faults import SensorFaults
 from .sensing import SENSOR_MODES, SensingEnv
 
 
@@ -17,4 +18,4 @@ def register_envs() -> None:
                      vector_entry_point="dks_gym.wrappers.vector:LatentFilterVectorEnv")
 
 
-__all__ = ["SENSOR_MODES", "SensingEnv", "register_envs"]
+__all__ = ["SENSOR_MODES", "SensingEnv", "SensorFaults", "register_envs"]

@@ -13,6 +13,11 @@ Two sensor modes:
   indices into the candidate set (default: every fluid grid cell). Repeated picks are allowed and read
   the same cell, noise included.
 
+``faults`` (a :class:`~dks_gym.envs.faults.SensorFaults` or a dict of its fields) adds dropout, failures,
+bias drift, saturation, quantization, latency and slow sensors, seeded like the noise: a missing reading is
+NaN in the observation (which a Box cannot contain: the filter wrappers observe the belief instead) and
+``info["mask"]`` (True = present, always given) says which. Latency reads the current layout's cells.
+
 An episode ends with ``truncated=True`` when the last frame is reached: the flow goes on, the record stops.
 """
 
@@ -27,6 +32,7 @@ from gymnasium import spaces
 
 from ..benchmarks import Benchmark, get_benchmark
 from ..dataset import SPLITS, Dataset, load_dataset
+from .faults import FaultRealization, SensorFaults
 from .noise import measurement_noise, noise_sigma
 
 SENSOR_MODES = ("fixed", "select")
@@ -51,6 +57,7 @@ class SensingEnv(gym.Env):
         sensor_mode: str = "fixed",
         candidates: np.ndarray | list[int] | None = None,
         noise_level: float = 0.2,
+        faults: SensorFaults | dict[str, Any] | None = None,
         render_mode: str | None = None,
         render_channel: str | None = None,
     ) -> None:
@@ -64,6 +71,9 @@ class SensingEnv(gym.Env):
             raise ValueError(f"noise_level must be a finite number >= 0, got {noise_level!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unsupported render_mode {render_mode!r}; choose 'rgb_array' or None")
+        self.faults = SensorFaults.from_any(faults)
+        if self.faults is not None and not self.faults.any:
+            self.faults = None
         self.dataset: Dataset = load_dataset(self.benchmark.name, preset, data_path)
         self.split = split
         self.sensor_mode = sensor_mode
@@ -92,6 +102,9 @@ class SensingEnv(gym.Env):
                 f"{'candidate' if sensor_mode == 'select' else 'fluid'} cells exist; use fewer sensors"
             )
         self.n_sensors = int(n_sensors)
+        if self.faults is not None and any(i >= self.n_sensors for i in self.faults.slow_sensors):
+            raise ValueError(f"faults.slow_sensors {self.faults.slow_sensors} name slots beyond the "
+                             f"{self.n_sensors} sensors; give indices into the layout")
         self._default_sensors = sensors if sensors is not None else self.benchmark.paper_layout(self.n_sensors)
 
         # Gaussian readings are unbounded; the largest float32 says so without tripping check_env's infinity warning.
@@ -110,6 +123,8 @@ class SensingEnv(gym.Env):
         self._frames: np.ndarray | None = None
         self._observed: np.ndarray | None = None
         self._noise_seed = 0
+        self._fault_draws: FaultRealization | None = None
+        self._present = np.ones(self.n_sensors, dtype=bool)
 
     # Validation ------------------------------------------------------------------------------------
     def _check_cells(self, cells: Any, what: str) -> np.ndarray:
@@ -179,6 +194,9 @@ class SensingEnv(gym.Env):
         else:
             self._sensors = self._default_sensors
         self._load_trajectory(int(traj))
+        if self.faults is not None:
+            self._fault_draws = self.faults.realize(self._noise_seed, self.split, self._trajectory,
+                                                    self.dataset.n_frames, self.n_sensors)
         self._k = 0
         return self._observe(), self._info()
 
@@ -250,12 +268,18 @@ class SensingEnv(gym.Env):
     def noise_seed(self) -> int:
         return self._noise_seed
 
+    def _reading(self, k: int) -> np.ndarray:
+        """The noisy readings of the current layout at frame ``k`` (Eq. 4), float64."""
+        clean = self._observed[k].ravel()[self._sensors]
+        return clean + measurement_noise(
+            self._noise_seed, self.split, self._trajectory, k, self._sensors, self.sigma, self.n_cells)
+
     def _observe(self) -> np.ndarray:
-        clean = self._observed[self._k].ravel()[self._sensors]
-        noise = measurement_noise(
-            self._noise_seed, self.split, self._trajectory, self._k, self._sensors, self.sigma, self.n_cells
-        )
-        return (clean + noise).astype(np.float32)
+        if self._fault_draws is None:
+            return self._reading(self._k).astype(np.float32)
+        source = self._fault_draws.source_frame(self._k)
+        obs, self._present = self._fault_draws.apply(self._k, None if source is None else self._reading(source))
+        return obs
 
     def _info(self) -> dict[str, Any]:
         return {
@@ -266,6 +290,7 @@ class SensingEnv(gym.Env):
             "trajectory": self._trajectory,
             "split": self.split,
             "sensors": self._sensors.copy(),
+            "mask": self._present.copy(),
             "sigma": self.sigma,
             "noise_seed": self._noise_seed,
         }

@@ -28,9 +28,11 @@ from .common import (
     SequentialFilter,
     StepTimer,
     as_covariance,
+    check_mask,
     check_measurement,
     cholesky_or_nan,
     forecast_with_jacobian,
+    mask_measurement,
     nonfinite_elements,
     observe_with_jacobian,
     raise_if_diverged,
@@ -67,20 +69,27 @@ def ekf_update(
     dynamics: LatentDynamics,
     R: CovarianceSpec,
     *,
+    mask: Tensor | None = None,
     jacobian_method: JacobianMethod = "auto",
     check: bool = True,
 ) -> tuple[GaussianState, Tensor]:
     """EKF update (Eqs. 15-17, Joseph form) of a forecast state with measurements ``y`` ``(B, m)``.
 
     Returns the analysis state and the gain ``K`` ``(B, r, m)``. ``R`` is the measurement-noise covariance
-    (scalar, ``(B,)``, ``(m, m)`` or ``(B, m, m)``). Raises ValueError for a malformed or non-finite ``y``.
+    (scalar, ``(B,)``, ``(m, m)`` or ``(B, m, m)``). ``mask`` ``(B, m)`` bool: the readings present; the
+    update uses those rows of ``J`` and ``R`` only (the missing readings' gain columns are 0, their values are
+    ignored). Raises ValueError for a malformed ``y`` or a non-finite reading that the mask calls present.
     """
     z_f, P_f = state.mean, state.cov
     batch = z_f.shape[0]
     h, J = observe_with_jacobian(dynamics, z_f, jacobian_method)
     m = h.shape[1]
-    y = check_measurement(y, batch, m, like=z_f)
-    R_mat = as_covariance(R, batch, m, like=z_f, name="R")
+    y = check_measurement(y, batch, m, like=z_f, mask=mask)
+    mask = check_mask(mask, y)
+    y, R_mat = mask_measurement(y, mask, as_covariance(R, batch, m, like=z_f, name="R"))
+    if mask is not None:  # the missing rows observe nothing: zero rows of J, zero innovation
+        J = J * mask.to(J.dtype)[..., None]
+        h = torch.where(mask, h, y)
 
     PJt = P_f @ J.mT
     L, singular = cholesky_or_nan(symmetrize(J @ PJt + R_mat))
@@ -156,19 +165,23 @@ class EKF(SequentialFilter):
         self._require_reset()
         return self.state.cov
 
-    def step(self, y: Tensor | None = None, assimilate: bool = True) -> Tensor:
-        """Forecast one step and, if ``assimilate``, update with ``y`` ``(B, m)``; return the new mean ``(B, r)``."""
+    def step(self, y: Tensor | None = None, assimilate: bool = True, mask: Tensor | None = None) -> Tensor:
+        """Forecast one step and, if ``assimilate``, update with ``y`` ``(B, m)``; return the new mean ``(B, r)``.
+
+        ``mask`` ``(B, m)`` bool: the readings present (default all); a step with none present is a forecast.
+        """
         self._require_reset()
         state = self.state
         with StepTimer(state.mean.device) as timer:
-            y_checked = self._measurement(y, state.mean) if assimilate else None
+            y_checked, mask = self._measurement(y, state.mean, mask) if assimilate else (None, None)
             new, F = ekf_forecast(
                 state, self.dynamics, self._process_noise(state.mean), jacobian_method=self.jacobian_method, check=False
             )
             gain_norm = torch.zeros(self._batch, dtype=state.mean.dtype, device=state.mean.device)
-            if assimilate:
+            if assimilate and (mask is None or bool(mask.any())):
                 R = self._measurement_noise(state.mean, y_checked.shape[1])
-                new, K = ekf_update(new, y_checked, self.dynamics, R, jacobian_method=self.jacobian_method, check=False)
+                new, K = ekf_update(new, y_checked, self.dynamics, R, mask=mask, jacobian_method=self.jacobian_method,
+                                    check=False)
                 self._m = y_checked.shape[1]
                 if self.record_diagnostics:
                     gain_norm = spectral_norm(torch.nan_to_num(K, nan=0.0, posinf=0.0, neginf=0.0))

@@ -36,9 +36,11 @@ from .common import (
     StepTimer,
     apply_rows,
     as_covariance,
+    check_mask,
     check_measurement,
     check_symmetric,
     cholesky_or_nan,
+    mask_measurement,
     nonfinite_elements,
     psd_sqrt,
     raise_if_diverged,
@@ -110,14 +112,22 @@ def enkf_update(
     inflation: float = 1.0,
     localization: Localization | None = None,
     perturbations: Perturbations = "centered",
+    mask: Tensor | None = None,
     check: bool = True,
 ) -> tuple[Tensor, Tensor]:
-    """Stochastic EnKF analysis with perturbed observations; returns the analysis ensemble and the gain ``K``."""
+    """Stochastic EnKF analysis with perturbed observations; returns the analysis ensemble and the gain ``K``.
+
+    ``mask`` ``(B, m)`` bool: the readings present; the analysis uses only those (the missing readings' gain
+    columns are 0; the perturbations are drawn for every reading, so the present ones get the same draws).
+    """
     batch, n, _ = ensemble.shape
     predicted = apply_rows(dynamics.observe, ensemble, dynamics.stacked_rows)  # (B, n, m)
     m = predicted.shape[-1]
-    y = check_measurement(y, batch, m, like=ensemble)
-    R_mat = as_covariance(R, batch, m, like=ensemble, name="R")
+    y = check_measurement(y, batch, m, like=ensemble, mask=mask)
+    mask = check_mask(mask, y)
+    y, R_mat = mask_measurement(y, mask, as_covariance(R, batch, m, like=ensemble, name="R"))
+    if mask is not None:  # the missing readings predict nothing: no spread, no innovation
+        predicted = predicted * mask.to(predicted.dtype)[:, None, :]
 
     A = ensemble - ensemble.mean(1, keepdim=True)
     Y = predicted - predicted.mean(1, keepdim=True)
@@ -133,6 +143,8 @@ def enkf_update(
         eps = (eps - eps.mean(1, keepdim=True)) * math.sqrt(n / (n - 1))
     elif perturbations != "raw":
         raise ValueError(f"perturbations must be 'centered' or 'raw', got {perturbations!r}")
+    if mask is not None:
+        eps = eps * mask.to(eps.dtype)[:, None, :]
     analysis = ensemble + (y[:, None, :] + eps - predicted) @ K.mT
     if inflation != 1.0:
         mean = analysis.mean(1, keepdim=True)
@@ -237,15 +249,19 @@ class EnKF(SequentialFilter):
         self._require_reset()
         return ensemble_state(self.ensemble).cov
 
-    def step(self, y: Tensor | None = None, assimilate: bool = True) -> Tensor:
-        """Forecast every member and, if ``assimilate``, update with ``y`` ``(B, m)``; return the mean ``(B, r)``."""
+    def step(self, y: Tensor | None = None, assimilate: bool = True, mask: Tensor | None = None) -> Tensor:
+        """Forecast every member and, if ``assimilate``, update with ``y`` ``(B, m)``; return the mean ``(B, r)``.
+
+        ``mask`` ``(B, m)`` bool: the readings present (default all); a step with none present is a forecast
+        and draws no perturbations, so an episode without readings is the forward run.
+        """
         self._require_reset()
         E = self.ensemble
         with StepTimer(E.device) as timer:
-            y_checked = self._measurement(y, E) if assimilate else None
+            y_checked, mask = self._measurement(y, E, mask) if assimilate else (None, None)
             E = enkf_forecast(E, self.dynamics, self._process_noise(E), self.generator, check=False)
             gain_norm = torch.zeros(self._batch, dtype=E.dtype, device=E.device)
-            if assimilate:
+            if assimilate and (mask is None or bool(mask.any())):
                 E, K = enkf_update(
                     E,
                     y_checked,
@@ -255,6 +271,7 @@ class EnKF(SequentialFilter):
                     inflation=self.inflation,
                     localization=self.localization,
                     perturbations=self.perturbations,
+                    mask=mask,
                     check=False,
                 )
                 self._m = y_checked.shape[1]

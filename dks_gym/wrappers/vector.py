@@ -118,7 +118,7 @@ class LatentFilterVectorEnv(VectorEnv):
     def _infos(self, env_infos: list[dict[str, Any]], snap: Snapshot) -> dict[str, Any]:
         infos: dict[str, Any] = {
             key: np.array([info[key] for info in env_infos])
-            for key in ("mu", "time_index", "trajectory", "sigma", "sensors")
+            for key in ("mu", "time_index", "trajectory", "sigma", "sensors", "mask")
         }
         infos["mse"], infos["normalized_mse"] = snap.mse, snap.normalized_mse
         infos["estimate"] = snap.estimate.cpu().numpy().astype(np.float32)

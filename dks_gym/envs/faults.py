@@ -1,0 +1,153 @@
+"""Sensor faults (SPEC section 2 extended): what real probes do besides Gaussian noise, seeded like the noise.
+
+:class:`SensorFaults` names the faults and their sizes; composable, every one off by default. Each episode
+draws one :class:`FaultRealization` from a generator keyed by (noise seed, split, trajectory), so the faults
+of an episode are reproducible from the seed and do not depend on the model, the filter or the other
+faults' settings. Faults belong to the sensor *slots* of a layout (the m hardware units), not to grid cells.
+
+A reading at frame k, in this order (units of the observed channel):
+
+1. **latency** ``d``: the slot reports what it measured ``d`` frames earlier (its value and its noise at
+   frame ``k - d``); nothing for ``k < d``;
+2. **bias drift**: plus a random walk ``b_k = b_{k-1} + drift * N(0, 1)`` per slot, ``b_0 = 0``;
+3. **saturation** ``(low, high)``: clipped to the range;
+4. **quantization** ``q``: rounded to the nearest multiple of ``q``;
+5. **missing**, as NaN (with ``info["mask"]`` False): **dropout** (each reading lost with probability ``p``),
+   **failure** (each slot fails for good at a step drawn with hazard ``failure_rate`` per step), or a
+   **slow sensor** (the slots in ``slow_sensors`` read only at frames ``k`` divisible by ``slow_every``).
+
+The true state is untouched; the filters update with the readings present
+(:class:`~dks_gym.filters.EKF` ``mask=``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+_SPLIT_KEYS = {"train": 0, "test": 1}
+_FAULT_KEY = 0x5EA5  # a fourth key word: the faults' stream never meets the noise fields' (seed, split, traj, frame)
+
+
+def _number(value: Any, name: str, *, low: float = 0.0, high: float = math.inf, integer: bool = False) -> None:
+    ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
+    if not ok or not (low <= float(value) <= high) or not math.isfinite(float(value)):
+        kind = "an integer" if integer else "a finite number"
+        raise ValueError(f"{name} must be {kind} in [{low:g}, {high:g}], got {value!r}")
+
+
+@dataclass(frozen=True)
+class SensorFaults:
+    """Which faults the sensors have, and how strongly (see the module docstring for each model).
+
+    ``dropout``: probability that a reading is missing, per reading. ``failure_rate``: per-step probability
+    that a working slot fails for good. ``drift``: standard deviation of the bias random walk's step per frame.
+    ``saturation``: ``(low, high)`` range the readings are clipped to. ``quantization``: the reading's
+    resolution. ``latency``: frames of delay. ``slow_sensors`` / ``slow_every``: slots (indices into the
+    layout) that read only every ``slow_every`` frames.
+    """
+
+    dropout: float = 0.0
+    failure_rate: float = 0.0
+    drift: float = 0.0
+    saturation: tuple[float, float] | None = None
+    quantization: float = 0.0
+    latency: int = 0
+    slow_sensors: tuple[int, ...] = ()
+    slow_every: int = 1
+
+    def __post_init__(self) -> None:
+        _number(self.dropout, "dropout", high=1.0)
+        _number(self.failure_rate, "failure_rate", high=1.0)
+        _number(self.drift, "drift")
+        _number(self.quantization, "quantization")
+        _number(self.latency, "latency", integer=True)
+        _number(self.slow_every, "slow_every", low=1, integer=True)
+        if self.saturation is not None:
+            if len(self.saturation) != 2:
+                raise ValueError(f"saturation must be a (low, high) pair, got {self.saturation!r}")
+            low, high = self.saturation
+            _number(low, "saturation low", low=-math.inf)
+            _number(high, "saturation high", low=-math.inf)
+            if not low < high:
+                raise ValueError(f"saturation must have low < high, got {self.saturation!r}")
+            object.__setattr__(self, "saturation", (float(low), float(high)))
+        slots = tuple(self.slow_sensors)
+        if any(isinstance(i, bool) or not isinstance(i, numbers.Integral) or i < 0 for i in slots):
+            raise ValueError(f"slow_sensors must be non-negative slot indices into the layout, got {slots!r}")
+        object.__setattr__(self, "slow_sensors", tuple(int(i) for i in slots))
+
+    @classmethod
+    def from_any(cls, value: "SensorFaults | dict[str, Any] | None") -> "SensorFaults | None":
+        """A SensorFaults from itself, a dict of its fields (unknown names refused) or None (no faults)."""
+        if value is None or isinstance(value, SensorFaults):
+            return value
+        if not isinstance(value, dict):
+            raise ValueError(f"faults must be a SensorFaults, a dict of its fields or None, got {type(value).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(value) - known
+        if unknown:
+            raise ValueError(f"unknown sensor faults {sorted(unknown)}; known: {sorted(known)}")
+        return cls(**value)
+
+    @property
+    def any(self) -> bool:
+        """Whether any fault is switched on."""
+        return self != SensorFaults()
+
+    def realize(self, seed: int, split: str, trajectory: int, n_frames: int, n_sensors: int) -> FaultRealization:
+        """This episode's faults: the draws for every frame and slot, from the episode's key."""
+        if any(i >= n_sensors for i in self.slow_sensors):
+            raise ValueError(f"slow_sensors {self.slow_sensors} name slots beyond the layout's {n_sensors} sensors")
+        key = [int(seed) & (2**63 - 1), _SPLIT_KEYS[split], int(trajectory), _FAULT_KEY]
+        rng = np.random.default_rng(np.random.SeedSequence(key))
+        shape = (n_frames, n_sensors)
+        # Every draw is made whatever the settings, so that one fault's draws do not move with another's size.
+        lost = rng.random(shape) < self.dropout
+        u = rng.random(n_sensors)
+        with np.errstate(divide="ignore"):  # rate 0: never (inf); rate 1: at step 1
+            # The geometric law by its inverse: the first step s >= 1 at which a slot fails.
+            failure_step = np.floor(np.log1p(-u) / np.log1p(-self.failure_rate)) + 1 if self.failure_rate > 0 \
+                else np.full(n_sensors, np.inf)
+        steps = rng.standard_normal(shape)
+        steps[0] = 0.0  # b_0 = 0
+        bias = np.cumsum(steps, axis=0) * self.drift
+        frames = np.arange(n_frames)[:, None]
+        missing = lost | (frames >= failure_step[None, :])
+        if self.slow_sensors:
+            slow = np.zeros(n_sensors, dtype=bool)
+            slow[list(self.slow_sensors)] = True
+            missing |= slow[None, :] & (frames % self.slow_every != 0)
+        return FaultRealization(self, missing, bias)
+
+
+@dataclass(frozen=True)
+class FaultRealization:
+    """One episode's faults: ``missing`` and ``bias`` are (n_frames, m), by frame and slot."""
+
+    faults: SensorFaults
+    missing: np.ndarray
+    bias: np.ndarray
+
+    def source_frame(self, k: int) -> int | None:
+        """The frame whose measurement the slots report at frame ``k`` (None: nothing yet, latency)."""
+        return k - self.faults.latency if k >= self.faults.latency else None
+
+    def apply(self, k: int, readings: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The faulty readings at frame ``k`` (NaN where missing) and the mask of those present, from the noisy
+        readings of :meth:`source_frame` (None when there is none)."""
+        m = self.missing.shape[1]
+        if readings is None:
+            return np.full(m, np.nan, dtype=np.float32), np.zeros(m, dtype=bool)
+        values = np.asarray(readings, dtype=np.float64) + self.bias[k]
+        if self.faults.saturation is not None:
+            values = np.clip(values, *self.faults.saturation)
+        if self.faults.quantization > 0:
+            values = np.round(values / self.faults.quantization) * self.faults.quantization
+        present = ~self.missing[k]
+        return np.where(present, values, np.nan).astype(np.float32), present
