@@ -19,20 +19,31 @@ greedy      m rounds; round j scores each of the remaining n_c - j + 1 candidate
             Jacobian-vector products once, then m n_c T n_t Riccati steps of r x r matrices (no decoding
             per layout). Blind to the model's own errors: it scores what the filter believes, not what
             it achieves.
+d-optimal   greedy on log det of the information the episode's readings give about the initial latent
+            state (the linearized latent map, no process noise; exact for the Koopman model's linear map):
+            the same linearization as "trace", then each cell's episode information once (T n_t n_c r^2),
+            and m n_c T determinants of r x r matrices: no filter run per layout.
 =========== ======================================================================================
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import scipy.linalg
+import torch
 
 from dks_gym.dataset import Dataset
 
 from .policies import PlacementTask, StaticPolicy, candidate_lattice
-from .scoring import LinearizedTrajectories, covariance_traces, run_layouts
+from .scoring import (
+    LinearizedTrajectories,
+    covariance_traces,
+    episode_information,
+    information_logdets,
+    run_layouts,
+)
 
 # A CCQR cost larger than any row norm of an orthonormal basis (<= 1): cells with it are never pivots.
 FORBIDDEN_COST = 1e6
@@ -213,6 +224,31 @@ def spread_trajectories(dataset: Dataset, n: int | None, split: str = "train") -
     return np.sort(order[np.unique(np.linspace(0, n_traj - 1, n).round().astype(int))])
 
 
+#: Greedy objectives and the policy names they go by.
+GREEDY_OBJECTIVES = {"error": "greedy", "trace": "greedy-trace", "information": "d-optimal"}
+
+
+def greedy_layout(score: Callable[[np.ndarray], np.ndarray], candidates: np.ndarray,
+                  n_sensors: int) -> tuple[np.ndarray, list[float], list[np.ndarray]]:
+    """Add one sensor at a time, each time the candidate whose layout ``score`` (lower is better) rates best.
+
+    ``score`` maps (L, j) layouts to (L,) values. Returns the layout, the best value after each round and
+    every candidate's value per round.
+    """
+    chosen: list[int] = []
+    history, scores = [], []
+    for _ in range(n_sensors):
+        pool = np.setdiff1d(candidates, chosen)
+        layouts = np.concatenate([np.repeat(np.asarray(chosen, dtype=np.int64)[None], len(pool), 0),
+                                  pool[:, None]], axis=1)
+        values = score(layouts)
+        best = int(np.argmin(values))
+        chosen.append(int(pool[best]))
+        history.append(float(values[best]))
+        scores.append(values)
+    return np.asarray(chosen, dtype=np.int64), history, scores
+
+
 class GreedyLayout(StaticPolicy):
     """Add one sensor at a time, each time the candidate that most lowers the objective on training trajectories.
 
@@ -221,7 +257,10 @@ class GreedyLayout(StaticPolicy):
     ``objective="trace"``: the time-averaged trace of the EKF analysis covariance linearized along the
     encoded training trajectories, as the variance of the decoded scored field
     (:func:`~dks_gym_agents.scoring.covariance_traces`, ``space="field"``); it can only fall as sensors are added.
-    Candidates: ``candidates`` or a lattice of about ``n_candidates`` allowed cells; trajectories:
+    ``objective="information"`` (the "d-optimal" policy): minus the mean log det of the information the
+    episode's readings give about the initial latent state, prior P0^{-1}
+    (:func:`~dks_gym_agents.scoring.episode_information`); monotone and submodular in the layout, so the greedy
+    layout is within (1 - 1/e) of the best one's gain over the prior. Candidates: ``candidates`` or a lattice of about ``n_candidates`` allowed cells; trajectories:
     ``n_trajectories`` spread over the training parameters. ``history`` holds the best objective after
     each round, ``scores`` every candidate's score per round. ``max_batch`` caps the (layout, trajectory)
     pairs filtered at once.
@@ -230,10 +269,10 @@ class GreedyLayout(StaticPolicy):
     def __init__(self, objective: str = "error", n_candidates: int = 32, n_trajectories: int | None = None,
                  candidates: np.ndarray | None = None, max_batch: int = 256) -> None:
         super().__init__()
-        if objective not in ("error", "trace"):
-            raise ValueError(f"objective must be 'error' or 'trace', got {objective!r}")
+        if objective not in GREEDY_OBJECTIVES:
+            raise ValueError(f"objective must be one of {', '.join(GREEDY_OBJECTIVES)}, got {objective!r}")
         self.objective = objective
-        self.name = "greedy" if objective == "error" else "greedy-trace"
+        self.name = GREEDY_OBJECTIVES[objective]
         self.n_candidates = int(n_candidates)
         self.n_trajectories = n_trajectories if n_trajectories is not None else (4 if objective == "error" else 10)
         self.candidates = None if candidates is None else np.asarray(candidates, dtype=np.int64)
@@ -248,20 +287,11 @@ class GreedyLayout(StaticPolicy):
         self.used_candidates = cands
         trajectories = spread_trajectories(task.dataset, self.n_trajectories)
         self.used_trajectories = trajectories
-        score = self._trace_scorer(task, cands, trajectories) if self.objective == "trace" else \
-            self._error_scorer(task, trajectories)
-        chosen: list[int] = []
-        self.history, self.scores = [], []
-        for _ in range(task.n_sensors):
-            pool = np.setdiff1d(cands, chosen)
-            layouts = np.concatenate([np.repeat(np.asarray(chosen, dtype=np.int64)[None], len(pool), 0),
-                                      pool[:, None]], axis=1)
-            values = score(layouts)
-            best = int(np.argmin(values))
-            chosen.append(int(pool[best]))
-            self.history.append(float(values[best]))
-            self.scores.append(values)
-        return np.asarray(chosen, dtype=np.int64)
+        scorer = {"error": lambda: self._error_scorer(task, trajectories),
+                  "trace": lambda: self._trace_scorer(task, cands, trajectories),
+                  "information": lambda: self._information_scorer(task, cands, trajectories)}[self.objective]
+        chosen, self.history, self.scores = greedy_layout(scorer(), cands, task.n_sensors)
+        return chosen
 
     def _error_scorer(self, task: PlacementTask, trajectories: np.ndarray):
         n_traj = len(trajectories)
@@ -286,6 +316,18 @@ class GreedyLayout(StaticPolicy):
         def score(layouts: np.ndarray) -> np.ndarray:
             return np.concatenate([covariance_traces(lin, layouts[s:s + per_call], task.config).mean(axis=(1, 2))
                                    for s in range(0, len(layouts), per_call)])
+
+        return score
+
+    def _information_scorer(self, task: PlacementTask, cands: np.ndarray, trajectories: np.ndarray):
+        lin = LinearizedTrajectories(task.model, task.dataset, trajectories, cands, task.config)
+        information = episode_information(lin)
+        r = information.shape[-1]
+        P0 = torch.as_tensor(task.config.filter.initial_covariance(task.model), dtype=information.dtype)
+        prior = torch.linalg.inv(P0 if P0.ndim == 2 else P0 * torch.eye(r, dtype=information.dtype))
+
+        def score(layouts: np.ndarray) -> np.ndarray:  # lower is better: minus the mean log det
+            return -information_logdets(lin, information, layouts, prior).mean(axis=1)
 
         return score
 

@@ -33,7 +33,7 @@ from .evaluate import POLICIES
               help="Size of the candidate lattice of the greedy policies.")
 @click.option("--greedy-trajectories", type=click.IntRange(min=1), default=None,
               help="Training trajectories the greedy objective averages over (default: 4 for 'greedy', 10 for "
-                   "'greedy-trace').")
+                   "'greedy-trace' and 'd-optimal').")
 @click.option("--sequential", "sequential_ckpt", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Checkpoint (.zip) of 'sequential' (python -m dks_gym_agents.sequential); trained when absent.")
 @click.option("--ppo", "ppo_ckpt", type=click.Path(dir_okay=False, path_type=Path), default=None,

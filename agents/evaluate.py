@@ -42,12 +42,12 @@ from dks_gym.assimilation import AssimilationResult
 from dks_gym.evaluation.results import make_record, new_results, save_results
 
 from .adaptive import PPOAdaptive
-from .baselines import GreedyLayout, PaperLayout, QRLayout, RandomLayout
+from .baselines import GREEDY_OBJECTIVES, GreedyLayout, PaperLayout, QRLayout, RandomLayout
 from .policies import AdaptivePolicy, PlacementPolicy, PlacementTask, StaticPolicy
 from .scoring import run_adaptive, run_layouts
 from .sequential import SequentialLayout
 
-POLICIES = ("paper", "random", "qr", "greedy", "greedy-trace", "sequential", "ppo")
+POLICIES = ("paper", "random", "qr", "greedy", "greedy-trace", "d-optimal", "sequential", "ppo")
 
 
 def make_policies(names: Sequence[str | PlacementPolicy] | str, *, random_seeds: int = 5, greedy_candidates: int = 32,
@@ -55,7 +55,7 @@ def make_policies(names: Sequence[str | PlacementPolicy] | str, *, random_seeds:
                   ppo: str | Path | None = None, agent_timesteps: int | None = None,
                   agent_out: str | Path | None = None) -> list[PlacementPolicy]:
     """Policies by name ("paper", "random" (``random_seeds`` seeded layouts), "qr", "greedy" (filter error),
-    "greedy-trace", "sequential", "ppo") or given as :class:`PlacementPolicy` objects (your own, used as
+    "greedy-trace", "d-optimal", "sequential", "ppo") or given as :class:`PlacementPolicy` objects (your own, used as
     they are). Learned ones load ``sequential`` / ``ppo`` checkpoints when given, else train
     (``agent_timesteps`` steps, default each trainer's, checkpoints to ``agent_out``)."""
     if isinstance(names, str):
@@ -76,9 +76,9 @@ def make_policies(names: Sequence[str | PlacementPolicy] | str, *, random_seeds:
             out.extend(RandomLayout(seed) for seed in range(random_seeds))
         elif name == "qr":
             out.append(QRLayout())
-        elif name in ("greedy", "greedy-trace"):
-            out.append(GreedyLayout("error" if name == "greedy" else "trace", n_candidates=greedy_candidates,
-                                    n_trajectories=greedy_trajectories))
+        elif name in GREEDY_OBJECTIVES.values():
+            objective = next(key for key, value in GREEDY_OBJECTIVES.items() if value == name)
+            out.append(GreedyLayout(objective, n_candidates=greedy_candidates, n_trajectories=greedy_trajectories))
         elif name == "sequential":
             out.append(SequentialLayout(sequential, out=agent_out, **steps))
         else:

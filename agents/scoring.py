@@ -199,3 +199,35 @@ def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: 
         else:
             traces.append(state.cov.diagonal(dim1=-2, dim2=-1).sum(-1))
     return torch.stack(traces, dim=1).reshape(n_layouts, n_traj, -1).cpu().numpy()
+
+
+def episode_information(lin: LinearizedTrajectories) -> torch.Tensor:
+    """What each candidate cell's readings over a whole episode tell about the initial latent state, (T, n_c, r, r).
+
+    Under the linearized deterministic latent map (z_k = Phi_k z_0, Phi_k = F_{k-1} ... F_0; the Koopman
+    model's is exactly linear, Phi_k = K(mu)^k), a reading at cell c and frame k is y = J_k[c] Phi_k z_0 + noise
+    of variance sigma^2, so its Fisher information is ``(J_k[c] Phi_k)^T (J_k[c] Phi_k) / sigma^2``; summed
+    over frames 1..n_t-1. A layout's information is the prior's plus the sum over its cells.
+    """
+    n_traj, n_t, n_cells, r = lin.J.shape
+    phi = torch.eye(r, dtype=lin.J.dtype, device=lin.J.device).expand(n_traj, r, r)
+    info = torch.zeros(n_traj, n_cells, r, r, dtype=lin.J.dtype, device=lin.J.device)
+    for k in range(1, n_t):
+        phi = lin.F[:, k - 1] @ phi
+        rows = lin.J[:, k] @ phi  # (T, n_c, r): each cell's reading as a function of z_0
+        info += rows[..., :, None] * rows[..., None, :]
+    return info / (lin.sigma ** 2)[:, None, None, None]
+
+
+def information_logdets(lin: LinearizedTrajectories, information: torch.Tensor, layouts: np.ndarray,
+                        prior: torch.Tensor) -> np.ndarray:
+    """log det(prior + sum of the layout's cells' information), (L, T): the D-optimality of each layout on each
+    trajectory. ``information`` from :func:`episode_information`; ``prior`` (r, r), P0^{-1}."""
+    layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
+    missing = ~np.isin(layouts, lin.cells)
+    if missing.any():
+        raise ValueError(f"layout cells {np.unique(layouts[missing])[:10].tolist()} have no Jacobian; "
+                         "build LinearizedTrajectories with every candidate cell")
+    position = torch.as_tensor(np.searchsorted(lin.cells, layouts), device=information.device)  # (L, m)
+    total = information[:, position].sum(dim=2)  # (T, L, r, r)
+    return torch.linalg.slogdet(prior.to(total) + total)[1].T.cpu().numpy()

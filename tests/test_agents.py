@@ -11,6 +11,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 import dks_gym  # noqa: F401
 from dks_gym_agents.baselines import (
@@ -104,6 +105,7 @@ def test_every_policy_gives_valid_layouts(bench: str, burgers_task, cfd_tasks) -
     lattice = candidate_lattice(task, 3 * m)
     static = [PaperLayout(), RandomLayout(0), RandomLayout(1), QRLayout(),
               GreedyLayout("trace", candidates=lattice, n_trajectories=2),
+              GreedyLayout("information", candidates=lattice, n_trajectories=2),
               GreedyLayout("error", candidates=lattice[: m + 1], n_trajectories=1)]
     seq_env = SequentialPlacementVecEnv(LayoutScorer(task), lattice, n_envs=2)
     static.append(SequentialLayout(agent=PPO("MlpPolicy", seq_env, n_steps=m, batch_size=2 * m, seed=0, device="cpu"),
@@ -232,6 +234,64 @@ def test_greedy_trace_falls_monotonically_and_matches_a_numpy_riccati(burgers_ta
             P = (np.eye(task.model.r) - K @ J) @ P
             assert ours[t, k - 1] == pytest.approx(np.trace(M @ P), rel=1e-6)
     assert greedy.history[-1] == pytest.approx(ours.mean(), rel=1e-9)
+
+
+def _tiny_linearization(seed: int = 0, n_traj: int = 2, n_t: int = 6, n_cells: int = 7, r: int = 3):
+    """A stand-in for LinearizedTrajectories: random F_k, J_k over a few cells, per-trajectory sigma."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(seed)
+    F = torch.as_tensor(rng.standard_normal((n_traj, n_t - 1, r, r)) * 0.6 + np.eye(r))
+    J = torch.as_tensor(rng.standard_normal((n_traj, n_t, n_cells, r)))
+    return SimpleNamespace(F=F, J=J, sigma=torch.tensor([0.5, 0.8][:n_traj], dtype=torch.float64),
+                           cells=np.arange(n_cells) * 10, trajectories=np.arange(n_traj))
+
+
+def test_episode_information_is_what_the_filter_learns_about_the_initial_state() -> None:
+    """With no process noise the EKF's final covariance is Phi_N I^{-1} Phi_N^T (I the information about z_0),
+    so log det I = 2 log |det Phi_N| - log det P_N: the filters' own recursion checks episode_information."""
+    from dks_gym.filters import GaussianState, LatentDynamics, ekf_forecast, ekf_update
+    from dks_gym_agents.scoring import episode_information, information_logdets
+
+    lin = _tiny_linearization()
+    prior = torch.diag(torch.tensor([0.5, 2.0, 1.0], dtype=torch.float64))
+    layout = np.array([10, 40, 60])
+    ours = information_logdets(lin, episode_information(lin), layout[None], prior)[0]
+    for t in range(2):
+        state = GaussianState(torch.zeros(1, 3, dtype=torch.float64), torch.linalg.inv(prior)[None])
+        phi = torch.eye(3, dtype=torch.float64)
+        for k in range(1, lin.J.shape[1]):
+            dyn = LatentDynamics(lambda z: z, lambda z: torch.zeros(1, 3, dtype=torch.float64),
+                                 forecast_jacobian=lin.F[t, k - 1][None], observe_jacobian=lin.J[t, k][layout // 10][None])
+            state, _ = ekf_forecast(state, dyn, 0.0)
+            state, _ = ekf_update(state, torch.zeros(1, 3, dtype=torch.float64), dyn, float(lin.sigma[t]) ** 2)
+            phi = lin.F[t, k - 1] @ phi
+        expected = 2 * torch.linalg.slogdet(phi)[1] - torch.linalg.slogdet(state.cov[0])[1]
+        assert ours[t] == pytest.approx(float(expected), rel=1e-9)
+
+
+def test_d_optimal_greedy_against_a_brute_force_search() -> None:
+    """On a tiny case every 3-of-7 layout is scored: the greedy layout's gain over the prior is within the
+    (1 - 1/e) bound of the best one's (log det is monotone submodular), and equals it here."""
+    import itertools
+
+    from dks_gym_agents.baselines import greedy_layout
+    from dks_gym_agents.scoring import episode_information, information_logdets
+
+    lin = _tiny_linearization(seed=1)
+    info, prior = episode_information(lin), torch.eye(3, dtype=torch.float64)
+
+    def score(layouts: np.ndarray) -> np.ndarray:
+        return -information_logdets(lin, info, layouts, prior).mean(axis=1)
+
+    chosen, history, _ = greedy_layout(score, lin.cells, 3)
+    every = np.array(list(itertools.combinations(lin.cells, 3)))
+    values = score(every)
+    best = -values.min()  # the prior's log det is 0
+    assert -history[-1] >= (1 - 1 / np.e) * best
+    assert -history[-1] == pytest.approx(best, rel=1e-12)
+    assert sorted(chosen.tolist()) == sorted(every[values.argmin()].tolist())
+    assert np.all(np.diff(history) < 0)  # every sensor adds information
 
 
 def test_greedy_error_scores_are_the_filter_error_of_latent_filter_runs(burgers_task: PlacementTask) -> None:
