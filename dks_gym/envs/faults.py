@@ -1,19 +1,20 @@
 """Sensor faults (SPEC section 2 extended): what real probes do besides Gaussian noise, seeded like the noise.
 
-:class:`SensorFaults` names the faults and their sizes; composable, every one off by default. Each episode
-draws one :class:`FaultRealization` from a generator keyed by (noise seed, split, trajectory), so the faults
-of an episode are reproducible from the seed and do not depend on the model, the filter or the other
-faults' settings. Faults belong to the sensor *slots* of a layout (the m hardware units), not to grid cells.
+:class:`SensorFaults` names the faults and their sizes; composable, every one off by default. Each episode's
+:class:`FaultRealization` draws a cell's faults from a generator keyed by (noise seed, split, trajectory,
+cell), so the faults are reproducible from the seed, do not depend on the model, the filter, the rest of the
+layout or the other faults' settings, and a cell read by two layouts has the same faults in both (as it has
+the same noise). Only the slow sensors are named by their slot in the layout.
 
 A reading at frame k, in this order (units of the observed channel):
 
-1. **latency** ``d``: the slot reports what it measured ``d`` frames earlier (its value and its noise at
+1. **latency** ``d``: a sensor reports what it measured ``d`` frames earlier (its value and its noise at
    frame ``k - d``); nothing for ``k < d``;
-2. **bias drift**: plus a random walk ``b_k = b_{k-1} + drift * N(0, 1)`` per slot, ``b_0 = 0``;
+2. **bias drift**: plus a random walk ``b_k = b_{k-1} + drift * N(0, 1)`` per sensor, ``b_0 = 0``;
 3. **saturation** ``(low, high)``: clipped to the range;
 4. **quantization** ``q``: rounded to the nearest multiple of ``q``;
 5. **missing**, as NaN (with ``info["mask"]`` False): **dropout** (each reading lost with probability ``p``),
-   **failure** (each slot fails for good at a step drawn with hazard ``failure_rate`` per step), or a
+   **failure** (each sensor fails for good at a step drawn with hazard ``failure_rate`` per step), or a
    **slow sensor** (the slots in ``slow_sensors`` read only at frames ``k`` divisible by ``slow_every``).
 
 The true state is untouched; the filters update with the readings present
@@ -46,7 +47,7 @@ class SensorFaults:
     """Which faults the sensors have, and how strongly (see the module docstring for each model).
 
     ``dropout``: probability that a reading is missing, per reading. ``failure_rate``: per-step probability
-    that a working slot fails for good. ``drift``: standard deviation of the bias random walk's step per frame.
+    that a working sensor fails for good. ``drift``: standard deviation of the bias random walk's step per frame.
     ``saturation``: ``(low, high)`` range the readings are clipped to. ``quantization``: the reading's
     resolution. ``latency``: frames of delay. ``slow_sensors`` / ``slow_every``: slots (indices into the
     layout) that read only every ``slow_every`` frames.
@@ -101,53 +102,61 @@ class SensorFaults:
         return self != SensorFaults()
 
     def realize(self, seed: int, split: str, trajectory: int, n_frames: int, n_sensors: int) -> FaultRealization:
-        """This episode's faults: the draws for every frame and slot, from the episode's key."""
+        """This episode's faults, drawn per cell as the cells are read."""
         if any(i >= n_sensors for i in self.slow_sensors):
             raise ValueError(f"slow_sensors {self.slow_sensors} name slots beyond the layout's {n_sensors} sensors")
-        key = [int(seed) & (2**63 - 1), _SPLIT_KEYS[split], int(trajectory), _FAULT_KEY]
-        rng = np.random.default_rng(np.random.SeedSequence(key))
-        shape = (n_frames, n_sensors)
-        # Every draw is made whatever the settings, so that one fault's draws do not move with another's size.
-        lost = rng.random(shape) < self.dropout
-        u = rng.random(n_sensors)
-        with np.errstate(divide="ignore"):  # rate 0: never (inf); rate 1: at step 1
-            # The geometric law by its inverse: the first step s >= 1 at which a slot fails.
-            failure_step = np.floor(np.log1p(-u) / np.log1p(-self.failure_rate)) + 1 if self.failure_rate > 0 \
-                else np.full(n_sensors, np.inf)
-        steps = rng.standard_normal(shape)
-        steps[0] = 0.0  # b_0 = 0
-        bias = np.cumsum(steps, axis=0) * self.drift
-        frames = np.arange(n_frames)[:, None]
-        missing = lost | (frames >= failure_step[None, :])
-        if self.slow_sensors:
-            slow = np.zeros(n_sensors, dtype=bool)
-            slow[list(self.slow_sensors)] = True
-            missing |= slow[None, :] & (frames % self.slow_every != 0)
-        return FaultRealization(self, missing, bias)
+        return FaultRealization(self, (int(seed) & (2**63 - 1), _SPLIT_KEYS[split], int(trajectory)), n_frames)
 
 
-@dataclass(frozen=True)
 class FaultRealization:
-    """One episode's faults: ``missing`` and ``bias`` are (n_frames, m), by frame and slot."""
+    """One episode's faults. The draws of a cell (its dropouts, its failure step, its bias walk over every frame)
+    come from a generator keyed by (noise seed, split, trajectory, cell), made when the cell is first read: a
+    cell has the same faults whatever the rest of the layout, as it has the same noise, so layouts compared on
+    one episode meet the same faulty sensors where they share cells."""
 
-    faults: SensorFaults
-    missing: np.ndarray
-    bias: np.ndarray
+    def __init__(self, faults: SensorFaults, key: tuple[int, int, int], n_frames: int) -> None:
+        self.faults, self.key, self.n_frames = faults, key, n_frames
+        self._cells: dict[int, tuple[np.ndarray, float, np.ndarray]] = {}
+        slow = np.zeros(max(faults.slow_sensors, default=-1) + 1, dtype=bool)
+        slow[list(faults.slow_sensors)] = True
+        self._slow = slow
+
+    def _draws(self, cell: int) -> tuple[np.ndarray, float, np.ndarray]:
+        """(lost (n_frames,) bool, failure step, bias (n_frames,)) of one cell."""
+        if cell not in self._cells:
+            rng = np.random.default_rng(np.random.SeedSequence([*self.key, _FAULT_KEY, int(cell)]))
+            # Every draw is made whatever the settings, so one fault's draws do not move with another's size.
+            lost = rng.random(self.n_frames) < self.faults.dropout
+            u = rng.random()
+            rate = self.faults.failure_rate
+            # The geometric law by its inverse: the first step s >= 1 at which the sensor fails (rate 0: never).
+            with np.errstate(divide="ignore"):
+                failure = float(np.floor(np.log1p(-u) / np.log1p(-rate)) + 1) if rate > 0 else np.inf
+            steps = rng.standard_normal(self.n_frames)
+            steps[0] = 0.0  # b_0 = 0
+            self._cells[cell] = (lost, failure, np.cumsum(steps) * self.faults.drift)
+        return self._cells[cell]
 
     def source_frame(self, k: int) -> int | None:
-        """The frame whose measurement the slots report at frame ``k`` (None: nothing yet, latency)."""
+        """The frame whose measurement the sensors report at frame ``k`` (None: nothing yet, latency)."""
         return k - self.faults.latency if k >= self.faults.latency else None
 
-    def apply(self, k: int, readings: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """The faulty readings at frame ``k`` (NaN where missing) and the mask of those present, from the noisy
-        readings of :meth:`source_frame` (None when there is none)."""
-        m = self.missing.shape[1]
+    def apply(self, k: int, cells: np.ndarray, readings: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The faulty readings of ``cells`` at frame ``k`` (NaN where missing) and the mask of those present,
+        from their noisy readings of :meth:`source_frame` (None when there is none)."""
+        m = len(cells)
         if readings is None:
             return np.full(m, np.nan, dtype=np.float32), np.zeros(m, dtype=bool)
-        values = np.asarray(readings, dtype=np.float64) + self.bias[k]
+        draws = [self._draws(int(c)) for c in cells]
+        values = np.asarray(readings, dtype=np.float64) + np.array([bias[k] for _, _, bias in draws])
         if self.faults.saturation is not None:
             values = np.clip(values, *self.faults.saturation)
         if self.faults.quantization > 0:
             values = np.round(values / self.faults.quantization) * self.faults.quantization
-        present = ~self.missing[k]
+        missing = np.array([lost[k] or k >= failure for lost, failure, _ in draws])
+        if len(self._slow):
+            slot_slow = np.zeros(m, dtype=bool)
+            slot_slow[: len(self._slow)] = self._slow[:m]
+            missing |= slot_slow & (k % self.faults.slow_every != 0)
+        present = ~missing
         return np.where(present, values, np.nan).astype(np.float32), present

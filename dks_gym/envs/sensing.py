@@ -278,7 +278,8 @@ class SensingEnv(gym.Env):
         if self._fault_draws is None:
             return self._reading(self._k).astype(np.float32)
         source = self._fault_draws.source_frame(self._k)
-        obs, self._present = self._fault_draws.apply(self._k, None if source is None else self._reading(source))
+        obs, self._present = self._fault_draws.apply(self._k, self._sensors,
+                                                     None if source is None else self._reading(source))
         return obs
 
     def _info(self) -> dict[str, Any]:
