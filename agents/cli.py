@@ -27,6 +27,13 @@ from .evaluate import POLICIES
               help="Seed of the measurement noise, shared by every policy.")
 @click.option("--noise-seeds", type=click.IntRange(min=1), default=1, show_default=True,
               help="Noise realizations per test trajectory (seeds NOISE_SEED, NOISE_SEED + 1, ...).")
+@click.option("--faults", default="none", show_default=True,
+              help="Sensor faults in every test episode: 'none', 'default' (one reading in ten lost, each sensor "
+                   "failing with probability 0.005 per step) or a JSON object of SensorFaults fields, e.g. "
+                   "'{\"dropout\": 0.2, \"drift\": 0.01}'.")
+@click.option("--budgets", default=None,
+              help="Comma-separated sensor counts, e.g. 2,4,8,16,32: one run per budget under OUT/m<m>, then "
+                   "OUT/budgets.md and OUT/budgets.png (error vs budget); replaces --n-sensors.")
 @click.option("--random-seeds", type=click.IntRange(min=1), default=5, show_default=True,
               help="How many seeded random layouts 'random' evaluates.")
 @click.option("--greedy-candidates", type=click.IntRange(min=1), default=32, show_default=True,
@@ -46,7 +53,8 @@ from .evaluate import POLICIES
               help="Folder for placement.json, placement.md and placement_layouts.png.")
 def evaluate_placement_command(benchmark: str, policies: str, model: str, filter_: str, preset: str,
                                data_preset: str, n_sensors: int, noise_level: float, noise_seed: int,
-                               noise_seeds: int, random_seeds: int, greedy_candidates: int,
+                               noise_seeds: int, faults: str, budgets: str | None, random_seeds: int,
+                               greedy_candidates: int,
                                greedy_trajectories: int | None,
                                sequential_ckpt: Path | None, ppo_ckpt: Path | None, agent_timesteps: int | None,
                                device: str, train_if_missing: bool, out: Path) -> None:
@@ -62,18 +70,52 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
     from dks_gym.filters import FilterDivergence
     from dks_gym.models.checkpoint import CheckpointMissing
 
-    from .evaluate import evaluate_placement
+    from .evaluate import evaluate_budgets, evaluate_placement
 
     try:
-        evaluate_placement(
-            benchmark.lower(), policies, model=model, filter=filter_, model_preset=preset, data_preset=data_preset,
-            n_sensors=n_sensors, noise_level=noise_level, noise_seed=noise_seed, noise_seeds=noise_seeds,
-            random_seeds=random_seeds,
-            greedy_candidates=greedy_candidates, greedy_trajectories=greedy_trajectories,
-            sequential=sequential_ckpt, ppo=ppo_ckpt, agent_timesteps=agent_timesteps, out=out, device=device,
-            train_if_missing=train_if_missing, log=click.echo,
-        )
+        scenario = parse_faults(faults)
+        options = dict(model=model, filter=filter_, model_preset=preset, data_preset=data_preset,
+                       noise_level=noise_level, noise_seed=noise_seed, noise_seeds=noise_seeds, faults=scenario,
+                       random_seeds=random_seeds, greedy_candidates=greedy_candidates,
+                       greedy_trajectories=greedy_trajectories, sequential=sequential_ckpt, ppo=ppo_ckpt,
+                       agent_timesteps=agent_timesteps, device=device, train_if_missing=train_if_missing,
+                       log=click.echo)
+        if budgets is not None:
+            evaluate_budgets(benchmark.lower(), policies, parse_budgets(budgets), out=out, **options)
+        else:
+            evaluate_placement(benchmark.lower(), policies, n_sensors=n_sensors, out=out, **options)
     except (CheckpointMissing, DatasetMissing, SchemaError, ResultsError, FilterDivergence, FileNotFoundError,
             ValueError) as exc:
         raise click.ClickException(str(exc)) from exc
-    click.echo((out / "placement.md").read_text())
+    click.echo((out / ("budgets.md" if budgets is not None else "placement.md")).read_text())
+
+
+def parse_faults(text: str) -> str | dict | None:
+    """'none', 'default' or a JSON object of SensorFaults fields, as evaluate_placement takes it."""
+    import json
+
+    if text in ("none", "default"):
+        return None if text == "none" else text
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--faults must be 'none', 'default' or a JSON object of SensorFaults fields, got "
+                         f"{text!r} ({exc.msg})") from exc
+    if not isinstance(value, dict):
+        raise ValueError(f"--faults JSON must be an object such as '{{\"dropout\": 0.1}}', got {text!r}")
+    from dks_gym.envs import SensorFaults
+
+    SensorFaults.from_any(value)  # unknown names and bad values fail here, before any work
+    return value
+
+
+def parse_budgets(text: str) -> list[int]:
+    """'2,4,8' -> [2, 4, 8], refusing anything but positive integers."""
+    try:
+        budgets = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError as exc:
+        raise ValueError(f"--budgets must be comma-separated positive integers such as 2,4,8,16, got {text!r}") \
+            from exc
+    if not budgets or min(budgets) < 1:
+        raise ValueError(f"--budgets must be comma-separated positive integers such as 2,4,8,16, got {text!r}")
+    return budgets

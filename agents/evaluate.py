@@ -28,6 +28,7 @@ which works on any results document, e.g. a committed ``placement.json``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import platform
 import time
@@ -39,6 +40,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from dks_gym.assimilation import AssimilationResult
+from dks_gym.envs import SensorFaults
 from dks_gym.evaluation.results import make_record, new_results, save_results
 
 from .adaptive import PPOAdaptive
@@ -48,6 +50,9 @@ from .scoring import run_adaptive, run_layouts
 from .sequential import SequentialLayout
 
 POLICIES = ("paper", "random", "qr", "greedy", "greedy-trace", "d-optimal", "sequential", "ppo")
+#: The placement benchmark's fault scenario, the same on every benchmark: one reading in ten lost, and each
+#: sensor failing for good with probability 0.5 % per step (about 40 % of them within a 100-frame episode).
+DEFAULT_FAULTS = SensorFaults(dropout=0.1, failure_rate=0.005)
 
 
 def make_policies(names: Sequence[str | PlacementPolicy] | str, *, random_seeds: int = 5, greedy_candidates: int = 32,
@@ -425,6 +430,7 @@ def evaluate_placement(
     noise_level: float = 0.2,
     noise_seed: int = 0,
     noise_seeds: int = 1,
+    faults: SensorFaults | dict[str, Any] | str | None = None,
     random_seeds: int = 5,
     greedy_candidates: int = 32,
     greedy_trajectories: int | None = None,
@@ -440,21 +446,28 @@ def evaluate_placement(
     """Fit and run the named policies on BENCHMARK's test split; write JSON, table and figure to ``out``.
 
     Returns the results document and the per-policy results. Episodes: every test trajectory under the
-    ``noise_seeds`` noise seeds ``noise_seed, noise_seed + 1, ...``. ``task`` replaces the dataset/model
-    lookup (its config is used as is, its noise seed being the first). Learned policies ("sequential",
-    "ppo") load the given checkpoints or train, saving their checkpoints and learning curves under
-    ``out/agents``.
+    ``noise_seeds`` noise seeds ``noise_seed, noise_seed + 1, ...``. ``faults``: the sensors' faults in every
+    episode (a :class:`~dks_gym.envs.SensorFaults`, a dict of its fields, or "default" for
+    :data:`DEFAULT_FAULTS`); the policies are fitted without them. ``task`` replaces the dataset/model lookup
+    (its config is used as is, its noise seed being the first). Learned policies ("sequential", "ppo") load
+    the given checkpoints or train, saving their checkpoints and learning curves under ``out/agents``.
     """
     start = time.perf_counter()
     if task is None:
         task = PlacementTask.load(benchmark, model, model_preset=model_preset, data_preset=data_preset, device=device,
                                   train_if_missing=train_if_missing, kind=filter, n_sensors=n_sensors,
                                   noise_level=noise_level, noise_seed=noise_seed)
+    scenario = DEFAULT_FAULTS if faults == "default" else faults
     out = Path(out) if out is not None else None
     chosen = make_policies(policies, random_seeds=random_seeds, greedy_candidates=greedy_candidates,
                            greedy_trajectories=greedy_trajectories, sequential=sequential, ppo=ppo,
                            agent_timesteps=agent_timesteps, agent_out=None if out is None else out / "agents")
     seeds = list(range(task.config.noise_seed, task.config.noise_seed + int(noise_seeds)))
+    for policy in chosen:  # fitted on the training split without faults: a layout is chosen before it breaks
+        if policy.task is None:
+            policy.fit(task)
+    if scenario is not None:
+        task = dataclasses.replace(task, config=task.config.replace(faults=scenario))
     results = []
     for policy in chosen:
         pr = evaluate_policy(task, policy, noise_seeds=seeds)
@@ -474,3 +487,114 @@ def evaluate_placement(
         layout_figure(task, results, out / "placement_layouts.png")
         log(f"wrote {out / 'placement.json'}, {out / 'placement.md'}, {out / 'placement_layouts.png'}")
     return doc, results
+
+
+def evaluate_budgets(benchmark: str, policies: Sequence[str | PlacementPolicy] | str, budgets: Sequence[int], *,
+                     out: str | Path, log: Callable[[str], None] = print, **options: Any) -> dict[int, dict[str, Any]]:
+    """:func:`evaluate_placement` at each sensor budget m in ``budgets`` (``out/m{m}``), then ``out/budgets.md``
+    and ``out/budgets.png``: per policy and budget the time-averaged MSE and its paired log ratio to the random
+    layouts of the same episodes, with the standard error over trajectories (the error-vs-budget curves with
+    paired confidence bands). ``options`` go to :func:`evaluate_placement` (``faults``, ``model``, ...).
+    Policy objects are used at the first budget only (a fitted layout has its own m); give names.
+    """
+    budgets = sorted({int(m) for m in budgets})
+    if not budgets or budgets[0] < 1:
+        raise ValueError(f"budgets must be positive sensor counts, got {budgets!r}")
+    if not isinstance(policies, str) and any(isinstance(p, PlacementPolicy) for p in policies) and len(budgets) > 1:
+        raise ValueError("policy objects hold one budget's layout; pass policy names to compare budgets")
+    out = Path(out)
+    docs = {}
+    task = options.pop("task", None)
+    for m in budgets:
+        log(f"budget m = {m}")
+        if task is not None:  # a given task holds its own sensor count
+            options["task"] = dataclasses.replace(task, config=task.config.replace(n_sensors=m))
+        docs[m], _ = evaluate_placement(benchmark, policies, n_sensors=m, out=out / f"m{m}", log=log, **options)
+    (out / "budgets.md").write_text(budget_table(docs))
+    budget_figure(docs, out / "budgets.png")
+    log(f"wrote {out / 'budgets.md'}, {out / 'budgets.png'}")
+    return docs
+
+
+def _budget_rows(docs: dict[int, dict[str, Any]]) -> dict[str, dict[int, dict[str, Any]]]:
+    rows: dict[str, dict[int, dict[str, Any]]] = {}
+    for m, doc in docs.items():
+        for rec in doc["records"]:
+            name = rec.get("policy")
+            if name is None or name.startswith("random-") and name != "random-0":
+                continue
+            rows.setdefault("random" if name == "random-0" else name, {})[m] = rec
+    return rows
+
+
+def describe_faults(faults: dict[str, Any] | None) -> str:
+    """The fault settings that differ from none, as ``name value`` pairs ("none" without faults)."""
+    if not faults:
+        return "none"
+    defaults = dataclasses.asdict(SensorFaults())
+    changed = {k: v for k, v in faults.items() if v != defaults.get(k) and not (isinstance(v, list) and
+                                                                            tuple(v) == defaults.get(k))}
+    return ", ".join(f"{k} {v}" for k, v in changed.items()) or "none"
+
+
+def budget_table(docs: dict[int, dict[str, Any]]) -> str:
+    """The error-vs-budget table: per policy and m, time-averaged MSE and the paired log ratio to random ± se."""
+    budgets = sorted(docs)
+    first = docs[budgets[0]]
+    cfg = first["config"]
+    faults = cfg.get("faults")
+    lines = [f"# Sensor budgets: {first['benchmark']}, {cfg['model']} {cfg['filter']}", "",
+             f"Time-averaged MSE over frames 1..n_t-1 of the {cfg['n_episodes']} test episodes; in brackets the "
+             "paired log ratio to the random layouts of the same episodes (negative: better than random) ± its "
+             "standard error over trajectories. Random: the first seeded layout's MSE, the ratio of the mean of "
+             f"the others. Faults: {describe_faults(faults)}.", "",
+             "| policy | " + " | ".join(f"m = {m}" for m in budgets) + " |",
+             "|---|" + "---|" * len(budgets)]
+    for name, per_m in _budget_rows(docs).items():
+        cells = []
+        for m in budgets:
+            rec = per_m.get(m)
+            if rec is None:
+                cells.append("-")
+                continue
+            text = _sci(rec.get("time_mean_mse_mean"))
+            paired = rec.get("paired_vs_random")
+            if paired:
+                se = paired.get("log_ratio_se_trajectories")
+                text += f" ({paired['log_ratio_mean']:+.2f}" + (f" ± {se:.2f})" if se is not None else ")")
+            cells.append(text)
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def budget_figure(docs: dict[int, dict[str, Any]], path: str | Path) -> Path:
+    """Error vs budget per policy: the paired log ratio to random with a band of ± 2 standard errors."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_mse, ax_ratio) = plt.subplots(1, 2, figsize=(10, 4))
+    for name, per_m in _budget_rows(docs).items():
+        ms = sorted(per_m)
+        ax_mse.plot(ms, [per_m[m]["time_mean_mse_mean"] for m in ms], "o-", label=name)
+        paired = [(m, per_m[m].get("paired_vs_random")) for m in ms]
+        paired = [(m, p) for m, p in paired if p and p.get("log_ratio_se_trajectories") is not None]
+        if paired and name != "random":
+            x = np.array([m for m, _ in paired])
+            mean = np.array([p["log_ratio_mean"] for _, p in paired])
+            se = np.array([p["log_ratio_se_trajectories"] for _, p in paired])
+            ax_ratio.plot(x, mean, "o-", label=name)
+            ax_ratio.fill_between(x, mean - 2 * se, mean + 2 * se, alpha=0.2)
+    for ax in (ax_mse, ax_ratio):
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("sensors m")
+    ax_mse.set_yscale("log")
+    ax_mse.set_ylabel("time-averaged MSE")
+    ax_ratio.axhline(0.0, color="k", lw=0.8)
+    ax_ratio.set_ylabel("log(MSE / random), paired, ± 2 se")
+    ax_mse.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)

@@ -407,6 +407,51 @@ def test_evaluate_placement_writes_a_ranked_valid_results_file(burgers_task, tmp
     assert recs["paper"]["per_trajectory_final_mse"][2] == pytest.approx(info["mse"], rel=2e-4)
 
 
+@pytest.mark.filterwarnings("ignore:.*not within the observation space:UserWarning")  # NaN readings, by design
+def test_budgets_and_faults_through_the_command(burgers_task, tmp_path: Path, monkeypatch) -> None:
+    """--budgets runs one ranking per sensor count and writes the error-vs-budget table and figure; --faults puts
+    the faults in every test episode (and in the results' config) while the policies are fitted without them;
+    the paper record under faults equals a LatentFilter run of the same faulty env."""
+    from click.testing import CliRunner
+
+    from dks_gym_agents.cli import evaluate_placement_command
+    from dks_gym_agents.policies import PlacementTask as Task
+    from dks_gym.evaluation.results import load_results
+
+    def fake_load(cls, benchmark, model="koopman", **kwargs):
+        return dataclasses.replace(burgers_task, config=AssimilationConfig().replace(**{
+            k: kwargs[k] for k in ("kind", "n_sensors", "noise_level", "noise_seed")}))
+
+    monkeypatch.setattr(Task, "load", classmethod(fake_load))
+    result = CliRunner().invoke(evaluate_placement_command, [
+        "burgers", "--policies", "paper,random,d-optimal", "--random-seeds", "2", "--budgets", "2,4",
+        "--faults", '{"dropout": 0.3, "failure_rate": 0.02}', "--greedy-candidates", "12",
+        "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    table = (tmp_path / "budgets.md").read_text()
+    assert "| d-optimal |" in table and "m = 2" in table and "m = 4" in table and "dropout 0.3" in table
+    assert (tmp_path / "budgets.png").stat().st_size > 10_000
+    docs = {m: load_results(tmp_path / f"m{m}" / "placement.json") for m in (2, 4)}
+    for m, doc in docs.items():
+        recs = {r["policy"]: r for r in doc["records"]}
+        assert len(recs["d-optimal"]["sensors"]) == m
+        assert doc["config"]["faults"]["dropout"] == 0.3
+    paper = {r["policy"]: r for r in docs[4]["records"]}["paper"]
+    env = LatentFilter(gym.make("DKS/Burgers-v0", data_path=str(burgers_task.dataset.path), n_sensors=4,
+                                faults={"dropout": 0.3, "failure_rate": 0.02}), model=burgers_task.model)
+    env.reset(options={"trajectory": 1, "noise_seed": 0})
+    done = False
+    while not done:
+        _, _, terminated, truncated, info = env.step(None)
+        done = terminated or truncated
+    assert paper["per_trajectory_final_mse"][1] == pytest.approx(info["mse"], rel=2e-4)
+    bad = CliRunner().invoke(evaluate_placement_command, ["burgers", "--faults", '{"dropuot": 1}', "--out",
+                                                          str(tmp_path / "bad")])
+    assert bad.exit_code != 0 and "unknown sensor faults" in bad.output
+    bad = CliRunner().invoke(evaluate_placement_command, ["burgers", "--budgets", "4,x", "--out", str(tmp_path / "b")])
+    assert bad.exit_code != 0 and "--budgets must be" in bad.output
+
+
 def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
     from dks_gym_agents.evaluate import make_policies
 

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..dataset import SPLITS
+from ..envs.faults import SensorFaults
 from ..filters import EKF, EnKF, LatentDynamics
 from ..filters.common import check_covariance_spec
 from ..filters.enkf import Localization
@@ -138,7 +139,8 @@ class AssimilationConfig:
     ``filter``: the filter settings (default: the paper's EKF, restarting diverged trajectories);
     ``noise_level``: sigma as a fraction of max |observed channel|; ``n_sensors``: sensors per layout;
     ``noise_seed``: seed of the measurement noise, shared by every model and filter; ``split``: the
-    dataset split the episodes come from.
+    dataset split the episodes come from; ``faults``: the sensors' faults
+    (:class:`~dks_gym.envs.SensorFaults` or a dict of its fields; None: none).
     """
 
     filter: FilterConfig = field(default_factory=lambda: FilterConfig(on_divergence="reset"))
@@ -146,6 +148,7 @@ class AssimilationConfig:
     n_sensors: int = 16
     noise_seed: int = 0
     split: str = "test"
+    faults: SensorFaults | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.filter, FilterConfig):
@@ -160,6 +163,8 @@ class AssimilationConfig:
             raise ValueError(f"n_sensors must be a positive integer, got {self.n_sensors!r}")
         if self.split not in SPLITS:
             raise ValueError(f"unknown split {self.split!r}; choose 'train' or 'test'")
+        faults = SensorFaults.from_any(self.faults)
+        object.__setattr__(self, "faults", faults if faults is not None and faults.any else None)
 
     def replace(self, **changes: Any) -> "AssimilationConfig":
         """A copy with fields of this config or of its :class:`FilterConfig` changed (``kind="enkf"``, ``noise_level=0.1``)."""
@@ -180,7 +185,8 @@ class AssimilationConfig:
         f = self.filter
         return {"filter": f.kind, "initial": f.initial, "noise_level": self.noise_level, "n_members": f.n_members,
                 "n_sensors": self.n_sensors, "P0": _plain(f.P0), "Q": _plain(f.Q), "noise_seed": self.noise_seed,
-                "filter_seed": f.seed, "split": self.split, "on_divergence": f.on_divergence}
+                "filter_seed": f.seed, "split": self.split, "on_divergence": f.on_divergence,
+                "faults": None if self.faults is None else dataclasses.asdict(self.faults)}
 
 
 def _plain(value: float | torch.Tensor) -> Any:

@@ -340,7 +340,7 @@ def run_dataset(model: Any, dataset: Dataset, trajectories: np.ndarray, noise_se
     builds their envs (:func:`episode_envs`), runs them and closes them; ``wall_time`` includes the set-up."""
     start = time.perf_counter()
     envs = episode_envs(dataset, trajectories, noise_seeds, split=split or config.split,
-                        noise_level=config.noise_level, share=share, **env_kwargs)
+                        noise_level=config.noise_level, share=share, faults=config.faults, **env_kwargs)
     try:
         result = run_episodes(model, envs, config, layouts=layouts, decide=decide, dtype=dtype, progress=progress,
                               description=description, uncertainty=uncertainty,
