@@ -50,12 +50,26 @@ FORBIDDEN_COST = 1e6
 
 
 class PaperLayout(StaticPolicy):
-    """The paper's layout (SPEC section 2): ``Benchmark.paper_layout(m)``, from the geometry alone."""
+    """The paper's layout (SPEC section 2): ``Benchmark.paper_layout(m)``, from the geometry alone. Under a
+    candidate constraint each sensor moves to the nearest allowed cell not taken yet (grid distance)."""
 
     name = "paper"
 
     def choose(self, task: PlacementTask) -> np.ndarray:
-        return task.benchmark.paper_layout(task.n_sensors)
+        layout = task.benchmark.paper_layout(task.n_sensors)
+        if task.candidates is None:
+            return layout
+        grid = task.benchmark.grid
+        allowed = np.stack(np.unravel_index(task.allowed_cells, grid), axis=1).astype(float)
+        taken = np.zeros(len(allowed), dtype=bool)
+        out = []
+        for cell in layout:
+            distance = np.linalg.norm(allowed - np.array(np.unravel_index(cell, grid), dtype=float), axis=1)
+            distance[taken] = np.inf
+            best = int(np.argmin(distance))
+            taken[best] = True
+            out.append(int(task.allowed_cells[best]))
+        return np.asarray(out, dtype=np.int64)
 
 
 class RandomLayout(StaticPolicy):

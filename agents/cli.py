@@ -31,6 +31,10 @@ from .evaluate import POLICIES
               help="Sensor faults in every test episode: 'none', 'default' (one reading in ten lost, each sensor "
                    "failing with probability 0.005 per step) or a JSON object of SensorFaults fields, e.g. "
                    "'{\"dropout\": 0.2, \"drift\": 0.01}'.")
+@click.option("--constraint", default="fluid", show_default=True,
+              help="Where sensors may go: 'fluid' (every fluid cell), 'surface' (fluid cells touching a solid "
+                   "body) or a .npy file: a boolean keep-out mask of the grid's shape (True = forbidden) or an "
+                   "integer array of allowed flat cells. The paper layout moves to the nearest allowed cells.")
 @click.option("--budgets", default=None,
               help="Comma-separated sensor counts, e.g. 2,4,8,16,32: one run per budget under OUT/m<m>, then "
                    "OUT/budgets.md and OUT/budgets.png (error vs budget); replaces --n-sensors.")
@@ -53,7 +57,8 @@ from .evaluate import POLICIES
               help="Folder for placement.json, placement.md and placement_layouts.png.")
 def evaluate_placement_command(benchmark: str, policies: str, model: str, filter_: str, preset: str,
                                data_preset: str, n_sensors: int, noise_level: float, noise_seed: int,
-                               noise_seeds: int, faults: str, budgets: str | None, random_seeds: int,
+                               noise_seeds: int, faults: str, constraint: str, budgets: str | None,
+                               random_seeds: int,
                                greedy_candidates: int,
                                greedy_trajectories: int | None,
                                sequential_ckpt: Path | None, ppo_ckpt: Path | None, agent_timesteps: int | None,
@@ -74,8 +79,10 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
 
     try:
         scenario = parse_faults(faults)
+        allowed = constraint if constraint in ("fluid", "surface") else _load_array(constraint)
         options = dict(model=model, filter=filter_, model_preset=preset, data_preset=data_preset,
                        noise_level=noise_level, noise_seed=noise_seed, noise_seeds=noise_seeds, faults=scenario,
+                       constraint=allowed,
                        random_seeds=random_seeds, greedy_candidates=greedy_candidates,
                        greedy_trajectories=greedy_trajectories, sequential=sequential_ckpt, ppo=ppo_ckpt,
                        agent_timesteps=agent_timesteps, device=device, train_if_missing=train_if_missing,
@@ -107,6 +114,15 @@ def parse_faults(text: str) -> str | dict | None:
 
     SensorFaults.from_any(value)  # unknown names and bad values fail here, before any work
     return value
+
+
+def _load_array(path: str):
+    """A keep-out mask or an array of allowed cells from a .npy file."""
+    import numpy as np
+
+    if not Path(path).is_file():
+        raise ValueError(f"--constraint must be 'fluid', 'surface' or a .npy file, and {path!r} is no file")
+    return np.load(path, allow_pickle=False)
 
 
 def parse_budgets(text: str) -> list[int]:

@@ -45,7 +45,7 @@ from dks_gym.evaluation.results import make_record, new_results, save_results
 
 from .adaptive import PPOAdaptive
 from .baselines import GREEDY_OBJECTIVES, GreedyLayout, PaperLayout, QRLayout, RandomLayout
-from .policies import AdaptivePolicy, PlacementPolicy, PlacementTask, StaticPolicy
+from .policies import AdaptivePolicy, PlacementPolicy, PlacementTask, StaticPolicy, constraint_candidates
 from .scoring import run_adaptive, run_layouts
 from .sequential import SequentialLayout
 
@@ -192,6 +192,7 @@ def placement_document(task: PlacementTask, results: Sequence[PolicyResult], for
                   observed_channel=ds.observed_channel, scored_channels=list(ds.scored_channels),
                   model=task.model.kind, r=int(task.model.r), model_preset=model_preset, device=str(task.device),
                   policies=[pr.name for pr in results], ranking="time-averaged MSE over frames 1..n_t-1",
+                  n_allowed_cells=int(len(task.allowed_cells)), constrained=task.candidates is not None,
                   created=datetime.now(timezone.utc).isoformat(timespec="seconds"), wall_time_s=wall_time,
                   dks_gym_version=__version__, torch_version=torch.__version__, python=platform.python_version())
     return new_results(ds.benchmark.name, model_preset, dataset_identity(ds), config, records,
@@ -431,6 +432,7 @@ def evaluate_placement(
     noise_seed: int = 0,
     noise_seeds: int = 1,
     faults: SensorFaults | dict[str, Any] | str | None = None,
+    constraint: str | np.ndarray | None = None,
     random_seeds: int = 5,
     greedy_candidates: int = 32,
     greedy_trajectories: int | None = None,
@@ -448,7 +450,9 @@ def evaluate_placement(
     Returns the results document and the per-policy results. Episodes: every test trajectory under the
     ``noise_seeds`` noise seeds ``noise_seed, noise_seed + 1, ...``. ``faults``: the sensors' faults in every
     episode (a :class:`~dks_gym.envs.SensorFaults`, a dict of its fields, or "default" for
-    :data:`DEFAULT_FAULTS`); the policies are fitted without them. ``task`` replaces the dataset/model lookup
+    :data:`DEFAULT_FAULTS`); the policies are fitted without them. ``constraint``: where sensors may go
+    (:func:`~dks_gym_agents.policies.constraint_candidates`: "fluid", "surface", a keep-out mask or the allowed
+    cells; the paper layout moves to the nearest allowed cells). ``task`` replaces the dataset/model lookup
     (its config is used as is, its noise seed being the first). Learned policies ("sequential", "ppo") load
     the given checkpoints or train, saving their checkpoints and learning curves under ``out/agents``.
     """
@@ -458,6 +462,9 @@ def evaluate_placement(
                                   train_if_missing=train_if_missing, kind=filter, n_sensors=n_sensors,
                                   noise_level=noise_level, noise_seed=noise_seed)
     scenario = DEFAULT_FAULTS if faults == "default" else faults
+    allowed = constraint_candidates(task.dataset, constraint)
+    if allowed is not None:
+        task = dataclasses.replace(task, candidates=allowed)
     out = Path(out) if out is not None else None
     chosen = make_policies(policies, random_seeds=random_seeds, greedy_candidates=greedy_candidates,
                            greedy_trajectories=greedy_trajectories, sequential=sequential, ppo=ppo,

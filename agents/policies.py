@@ -178,6 +178,50 @@ def distinct_picks(picks: np.ndarray, n_candidates: int) -> np.ndarray:
     return arr if np.ndim(picks) == 2 else arr[0]
 
 
+#: Named candidate constraints: every fluid cell, or the fluid cells touching a solid body or obstacle.
+CONSTRAINTS = ("fluid", "surface")
+
+
+def constraint_candidates(dataset: Dataset, constraint: str | np.ndarray | None) -> np.ndarray | None:
+    """The cells a constraint allows, as ``PlacementTask(candidates=...)`` takes them (None: every fluid cell).
+
+    ``"fluid"`` (or None): every fluid cell. ``"surface"``: the fluid cells sharing a face with a solid cell
+    (the cylinder, the dambreak's obstacle, the sphere): sensors on the body only. A boolean array of the
+    grid's shape: a keep-out mask (True = forbidden). An integer array: the allowed cells themselves.
+    """
+    bench = dataset.benchmark
+    fluid = bench.fluid_mask(dataset.cell_type)
+    if constraint is None or (isinstance(constraint, str) and constraint == "fluid"):
+        return None
+    if isinstance(constraint, str):
+        if constraint != "surface":
+            raise ValueError(f"unknown constraint {constraint!r}; choose {', '.join(CONSTRAINTS)}, a keep-out mask "
+                             "(a boolean array of the grid's shape, True = forbidden) or an array of allowed cells")
+        solid = ~fluid
+        touching = np.zeros_like(fluid)
+        for axis in range(fluid.ndim):
+            for shift in (1, -1):
+                rolled = np.roll(solid, shift, axis=axis)
+                edge = [slice(None)] * fluid.ndim
+                edge[axis] = 0 if shift == 1 else -1  # np.roll wraps around: the grid's far side is no neighbour
+                rolled[tuple(edge)] = False
+                touching |= rolled
+        cells = np.flatnonzero((fluid & touching).ravel())
+        if cells.size == 0:
+            raise ValueError(f"{bench.name} has no solid body, so no surface to put sensors on; use 'fluid' or a "
+                             "keep-out mask")
+        return cells
+    arr = np.asarray(constraint)
+    if arr.dtype == bool:
+        if arr.shape != tuple(bench.grid):
+            raise ValueError(f"a keep-out mask must have the grid's shape {tuple(bench.grid)}, got {arr.shape}")
+        cells = np.flatnonzero((fluid & ~arr).ravel())
+        if cells.size == 0:
+            raise ValueError("the keep-out mask forbids every fluid cell")
+        return cells
+    return np.asarray(arr, dtype=np.int64).reshape(-1)  # PlacementTask checks them
+
+
 def candidate_lattice(task: PlacementTask, n_target: int) -> np.ndarray:
     """About ``n_target`` fluid cells on a regular sub-lattice of the grid (the same stride on every axis).
 

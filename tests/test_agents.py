@@ -452,6 +452,45 @@ def test_budgets_and_faults_through_the_command(burgers_task, tmp_path: Path, mo
     assert bad.exit_code != 0 and "--budgets must be" in bad.output
 
 
+@pytest.mark.parametrize("bench", CFD)
+def test_constraints_keep_every_static_policy_inside_the_allowed_cells(bench: str, cfd_tasks) -> None:
+    """'surface' allows the fluid cells touching a solid body; a keep-out mask forbids its cells; every static
+    policy (the paper layout moved to the nearest allowed cells) chooses inside them."""
+    from dks_gym_agents.policies import constraint_candidates
+
+    task = cfd_tasks[bench]
+    fluid = task.fluid_mask
+    surface = constraint_candidates(task.dataset, "surface")
+    for cell in surface:  # each one is fluid with a solid face-neighbour inside the grid
+        index = np.unravel_index(cell, fluid.shape)
+        neighbours = [tuple(np.add(index, step)) for axis in range(fluid.ndim) for step in
+                      (np.eye(fluid.ndim, dtype=int)[axis], -np.eye(fluid.ndim, dtype=int)[axis])]
+        assert fluid[index] and any(all(0 <= i < n for i, n in zip(nb, fluid.shape)) and not fluid[nb]
+                                    for nb in neighbours)
+    keep_out = np.zeros(fluid.shape, dtype=bool)
+    keep_out[tuple(slice(0, n // 2) for n in fluid.shape)] = True  # the lower corner block
+    outside = constraint_candidates(task.dataset, keep_out)
+    assert not keep_out.ravel()[outside].any() and fluid.ravel()[outside].all()
+    for allowed in (surface, outside):
+        constrained = dataclasses.replace(task, candidates=allowed)
+        lattice = candidate_lattice(constrained, 3 * task.n_sensors)
+        for policy in (PaperLayout(), RandomLayout(0), QRLayout(), GreedyLayout("information", candidates=lattice,
+                                                                                n_trajectories=1)):
+            layout = check_layout(constrained, policy.fit(constrained).layout)
+            assert set(layout.tolist()) <= set(allowed.tolist()), policy.name
+    with pytest.raises(ValueError, match="unknown constraint"):
+        constraint_candidates(task.dataset, "walls")
+    with pytest.raises(ValueError, match="grid's shape"):
+        constraint_candidates(task.dataset, np.zeros(3, dtype=bool))
+
+
+def test_burgers_has_no_surface(burgers_task: PlacementTask) -> None:
+    from dks_gym_agents.policies import constraint_candidates
+
+    with pytest.raises(ValueError, match="no solid body"):
+        constraint_candidates(burgers_task.dataset, "surface")
+
+
 def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
     from dks_gym_agents.evaluate import make_policies
 
