@@ -663,3 +663,57 @@ def test_an_episode_without_readings_is_the_forward_run(kind):
 
     for a, b in zip(run(True), run(False)):
         assert torch.equal(a, b)
+
+
+# ------------------------------------------------------------------------------- sensor bias
+
+
+@pytest.mark.parametrize("constant_jacobians", [True, False])
+def test_bias_augmented_ekf_equals_filterpy_on_the_hand_built_augmented_system(constant_jacobians):
+    """A drifting sensor bias estimated with the state: the EKF on augment_with_bias(dynamics) is filterpy's
+    KalmanFilter on F_aug = [[A, 0], [0, I]], H_aug = [H, I], Q_aug = blockdiag(Q, drift^2 I), step by step;
+    and it recovers a bias the plain filter cannot see."""
+    from dks_gym.filters import augment_with_bias, augmented_covariance
+
+    sys = linear_system(seed=31, n_steps=60)
+    A, H, Q, R, P0, z0 = sys["A"], sys["H"], sys["Q"], sys["R"], sys["P0"], sys["z0"]
+    r, m = A.shape[0], H.shape[0]
+    bias = np.array([0.8, -0.5, 0.3])
+    ys = sys["ys"] + bias  # a constant offset on every reading
+    drift2, bias_var = 1e-6, 1.0
+    ekf = EKF(augment_with_bias(linear_dynamics(A, H, constant_jacobians=constant_jacobians), m),
+              R=torch.tensor(R), Q=augmented_covariance(torch.tensor(Q), r, m, drift2))
+    ekf.reset(torch.tensor(np.r_[z0, np.zeros(m)])[None], augmented_covariance(torch.tensor(P0), r, m, bias_var))
+    kf = KalmanFilter(dim_x=r + m, dim_z=m)
+    kf.F = scipy.linalg.block_diag(A, np.eye(m))
+    kf.H = np.hstack([H, np.eye(m)])
+    kf.Q = scipy.linalg.block_diag(Q, drift2 * np.eye(m))
+    kf.R, kf.P, kf.x = R, scipy.linalg.block_diag(P0, bias_var * np.eye(m)), np.r_[z0, np.zeros(m)]
+    for y in ys:
+        ekf.step(torch.tensor(y)[None])
+        kf.predict()
+        kf.update(y)
+        np.testing.assert_allclose(ekf.mean[0].numpy(), kf.x, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ekf.cov[0].numpy(), kf.P, rtol=0, atol=1e-9)
+    estimate, spread = ekf.mean[0, r:].numpy(), np.sqrt(np.diag(ekf.cov[0].numpy())[r:])
+    assert np.all(np.abs(estimate - bias) < 4 * spread) and np.all(spread < 0.5)
+
+
+def test_bias_augmentation_keeps_a_jacobian_that_brings_its_readings():
+    """A model's observe_jacobian may return (h, J) (the sensor-local decoder): the augmented one returns
+    (h + b, [J, I]) and filters like the plain-J version."""
+    from dks_gym.filters import augment_with_bias
+    from dks_gym.filters.common import observe_with_jacobian
+
+    sys = linear_system(seed=32)
+    Ht = torch.tensor(sys["H"])
+    plain = LatentDynamics(lambda z: z, lambda z: z @ Ht.T, observe_jacobian=lambda z: Ht.expand(len(z), -1, -1))
+    paired = LatentDynamics(lambda z: z, lambda z: z @ Ht.T,
+                            observe_jacobian=lambda z: (z @ Ht.T, Ht.expand(len(z), -1, -1)))
+    x = torch.randn(5, 4 + 3, dtype=F64)
+    h1, J1 = observe_with_jacobian(augment_with_bias(plain, 3), x)
+    h2, J2 = observe_with_jacobian(augment_with_bias(paired, 3), x)
+    torch.testing.assert_close(h1, h2)
+    torch.testing.assert_close(J1, J2)
+    torch.testing.assert_close(h1, x[:, :4] @ Ht.T + x[:, 4:])
+    torch.testing.assert_close(J1[:, :, 4:], torch.eye(3, dtype=F64).expand(5, 3, 3))

@@ -3,9 +3,11 @@
 Model-independent and batched: a model enters only as a :class:`LatentDynamics` of callables over
 ``(B, r)`` latent tensors. Step functions (:func:`ekf_forecast`, :func:`ekf_update`,
 :func:`enkf_forecast`, :func:`enkf_update`) and stateful classes (:class:`EKF`, :class:`EnKF`) with
-``reset(z0, P0)`` / ``step(y, assimilate=True)`` / ``mean`` / ``cov`` / ``diagnostics``.
+``reset(z0, P0)`` / ``step(y, assimilate=True, mask=None)`` / ``mean`` / ``cov`` / ``diagnostics``;
+:func:`augment_with_bias` estimates sensor biases with the state.
 """
 
+from .bias import augment_with_bias, augmented_covariance
 from .common import (
     Diagnostics,
     FilterDivergence,
@@ -26,6 +28,8 @@ __all__ = [
     "GaussianState",
     "LatentDynamics",
     "as_covariance",
+    "augment_with_bias",
+    "augmented_covariance",
     "bind_param",
     "ekf_forecast",
     "ekf_update",
