@@ -582,17 +582,19 @@ def budget_figure(docs: dict[int, dict[str, Any]], path: str | Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, (ax_mse, ax_ratio) = plt.subplots(1, 2, figsize=(10, 4))
-    for name, per_m in _budget_rows(docs).items():
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (name, per_m) in enumerate(_budget_rows(docs).items()):
+        color = colors[i % len(colors)]  # one colour per policy in both panels
         ms = sorted(per_m)
-        ax_mse.plot(ms, [per_m[m]["time_mean_mse_mean"] for m in ms], "o-", label=name)
+        ax_mse.plot(ms, [per_m[m]["time_mean_mse_mean"] for m in ms], "o-", label=name, color=color)
         paired = [(m, per_m[m].get("paired_vs_random")) for m in ms]
         paired = [(m, p) for m, p in paired if p and p.get("log_ratio_se_trajectories") is not None]
         if paired and name != "random":
             x = np.array([m for m, _ in paired])
             mean = np.array([p["log_ratio_mean"] for _, p in paired])
             se = np.array([p["log_ratio_se_trajectories"] for _, p in paired])
-            ax_ratio.plot(x, mean, "o-", label=name)
-            ax_ratio.fill_between(x, mean - 2 * se, mean + 2 * se, alpha=0.2)
+            ax_ratio.plot(x, mean, "o-", label=name, color=color)
+            ax_ratio.fill_between(x, mean - 2 * se, mean + 2 * se, alpha=0.15, color=color)
     for ax in (ax_mse, ax_ratio):
         ax.set_xscale("log", base=2)
         ax.set_xlabel("sensors m")
