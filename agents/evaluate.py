@@ -443,6 +443,7 @@ def evaluate_placement(
     device: str = "cpu",
     train_if_missing: bool = False,
     task: PlacementTask | None = None,
+    skip_unfit: bool = False,
     log: Callable[[str], None] = print,
 ) -> tuple[dict[str, Any], list[PolicyResult]]:
     """Fit and run the named policies on BENCHMARK's test split; write JSON, table and figure to ``out``.
@@ -455,6 +456,8 @@ def evaluate_placement(
     cells; the paper layout moves to the nearest allowed cells). ``task`` replaces the dataset/model lookup
     (its config is used as is, its noise seed being the first). Learned policies ("sequential", "ppo") load
     the given checkpoints or train, saving their checkpoints and learning curves under ``out/agents``.
+    ``skip_unfit``: leave out (and record in ``config.skipped_policies``) a policy that cannot be fitted, e.g.
+    QR with more sensors than the data have POD modes, instead of stopping.
     """
     start = time.perf_counter()
     if task is None:
@@ -470,9 +473,19 @@ def evaluate_placement(
                            greedy_trajectories=greedy_trajectories, sequential=sequential, ppo=ppo,
                            agent_timesteps=agent_timesteps, agent_out=None if out is None else out / "agents")
     seeds = list(range(task.config.noise_seed, task.config.noise_seed + int(noise_seeds)))
-    for policy in chosen:  # fitted on the training split without faults: a layout is chosen before it breaks
+    skipped: dict[str, str] = {}
+    for policy in list(chosen):  # fitted on the training split without faults: a layout is chosen before it breaks
         if policy.task is None:
-            policy.fit(task)
+            try:
+                policy.fit(task)
+            except ValueError as exc:  # e.g. QR asked for more sensors than the data hold POD modes
+                if not skip_unfit:
+                    raise
+                log(f"{policy.name:>14}: skipped at m = {task.n_sensors} ({exc})")
+                skipped[policy.name] = str(exc)
+                chosen.remove(policy)
+    if not chosen:
+        raise ValueError(f"no policy could be fitted at m = {task.n_sensors}: {skipped}")
     if scenario is not None:
         task = dataclasses.replace(task, config=task.config.replace(faults=scenario))
     results = []
@@ -488,6 +501,7 @@ def evaluate_placement(
                           index, task.config.replace(kind="forward"), noise_seeds=episode_seeds)
     doc = add_paired_vs_random(placement_document(task, results, forward, model_preset=model_preset,
                                                   wall_time=time.perf_counter() - start))
+    doc["config"]["skipped_policies"] = skipped
     if out is not None:
         save_results(doc, out / "placement.json")
         (out / "placement.md").write_text(ranked_table(doc))
@@ -516,7 +530,8 @@ def evaluate_budgets(benchmark: str, policies: Sequence[str | PlacementPolicy] |
         log(f"budget m = {m}")
         if task is not None:  # a given task holds its own sensor count
             options["task"] = dataclasses.replace(task, config=task.config.replace(n_sensors=m))
-        docs[m], _ = evaluate_placement(benchmark, policies, n_sensors=m, out=out / f"m{m}", log=log, **options)
+        docs[m], _ = evaluate_placement(benchmark, policies, n_sensors=m, out=out / f"m{m}", log=log,
+                                        skip_unfit=True, **options)
     (out / "budgets.md").write_text(budget_table(docs))
     budget_figure(docs, out / "budgets.png")
     log(f"wrote {out / 'budgets.md'}, {out / 'budgets.png'}")
@@ -557,12 +572,17 @@ def budget_table(docs: dict[int, dict[str, Any]]) -> str:
              f"the others. Faults: {describe_faults(faults)}.", "",
              "| policy | " + " | ".join(f"m = {m}" for m in budgets) + " |",
              "|---|" + "---|" * len(budgets)]
-    for name, per_m in _budget_rows(docs).items():
+    skipped = {(name, m): reason for m, doc in docs.items()
+               for name, reason in doc["config"].get("skipped_policies", {}).items()}
+    names = dict.fromkeys([*_budget_rows(docs), *(name for name, _ in skipped)])
+    rows = _budget_rows(docs)
+    for name in names:
+        per_m = rows.get(name, {})
         cells = []
         for m in budgets:
             rec = per_m.get(m)
             if rec is None:
-                cells.append("-")
+                cells.append("skipped" if (name, m) in skipped else "-")
                 continue
             text = _sci(rec.get("time_mean_mse_mean"))
             paired = rec.get("paired_vs_random")
@@ -571,6 +591,8 @@ def budget_table(docs: dict[int, dict[str, Any]]) -> str:
                 text += f" ({paired['log_ratio_mean']:+.2f}" + (f" ± {se:.2f})" if se is not None else ")")
             cells.append(text)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    for (name, m), reason in sorted(skipped.items(), key=lambda item: item[0][1]):
+        lines.append(f"\n{name} skipped at m = {m}: {reason}")
     return "\n".join(lines) + "\n"
 
 

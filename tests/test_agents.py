@@ -491,6 +491,26 @@ def test_burgers_has_no_surface(burgers_task: PlacementTask) -> None:
         constraint_candidates(burgers_task.dataset, "surface")
 
 
+def test_a_policy_that_cannot_be_fitted_at_a_budget_is_skipped_not_fatal(burgers_task, tmp_path: Path) -> None:
+    """evaluate_budgets leaves out a policy whose fit fails at one budget (QR with more sensors than POD modes)
+    and says so in the table; a single ranking still stops on it."""
+    from dks_gym_agents import StaticPolicy
+    from dks_gym_agents.evaluate import evaluate_budgets, evaluate_placement
+
+    class TooGreedy(StaticPolicy):
+        name = "too-greedy"
+
+        def choose(self, task):
+            raise ValueError("the training snapshots hold only 3 POD modes")
+
+    docs = evaluate_budgets("burgers", ["paper", TooGreedy()], [4], task=burgers_task, out=tmp_path, log=lambda _: None)
+    table = (tmp_path / "budgets.md").read_text()
+    assert "| too-greedy | skipped |" in table and "only 3 POD modes" in table
+    assert docs[4]["config"]["skipped_policies"] == {"too-greedy": "the training snapshots hold only 3 POD modes"}
+    with pytest.raises(ValueError, match="only 3 POD modes"):
+        evaluate_placement("burgers", ["paper", TooGreedy()], task=burgers_task, log=lambda _: None)
+
+
 def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
     from dks_gym_agents.evaluate import make_policies
 
