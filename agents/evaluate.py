@@ -551,12 +551,8 @@ def _budget_rows(docs: dict[int, dict[str, Any]]) -> dict[str, dict[int, dict[st
 
 def describe_faults(faults: dict[str, Any] | None) -> str:
     """The fault settings that differ from none, as ``name value`` pairs ("none" without faults)."""
-    if not faults:
-        return "none"
-    defaults = dataclasses.asdict(SensorFaults())
-    changed = {k: v for k, v in faults.items() if v != defaults.get(k) and not (isinstance(v, list) and
-                                                                            tuple(v) == defaults.get(k))}
-    return ", ".join(f"{k} {v}" for k, v in changed.items()) or "none"
+    scenario = SensorFaults.from_any(faults)
+    return "none" if scenario is None else ", ".join(f"{k} {v}" for k, v in scenario.changed().items())
 
 
 def budget_table(docs: dict[int, dict[str, Any]]) -> str:
@@ -574,9 +570,8 @@ def budget_table(docs: dict[int, dict[str, Any]]) -> str:
              "|---|" + "---|" * len(budgets)]
     skipped = {(name, m): reason for m, doc in docs.items()
                for name, reason in doc["config"].get("skipped_policies", {}).items()}
-    names = dict.fromkeys([*_budget_rows(docs), *(name for name, _ in skipped)])
     rows = _budget_rows(docs)
-    for name in names:
+    for name in dict.fromkeys([*rows, *(name for name, _ in skipped)]):
         per_m = rows.get(name, {})
         cells = []
         for m in budgets:
@@ -600,11 +595,12 @@ def budget_figure(docs: dict[int, dict[str, Any]], path: str | Path) -> Path:
     """Error vs budget per policy: the paired log ratio to random with a band of ± 2 standard errors."""
     import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
 
-    fig, (ax_mse, ax_ratio) = plt.subplots(1, 2, figsize=(10, 4))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig = Figure(figsize=(10, 4))
+    ax_mse, ax_ratio = fig.subplots(1, 2)
+    colors = matplotlib.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, (name, per_m) in enumerate(_budget_rows(docs).items()):
         color = colors[i % len(colors)]  # one colour per policy in both panels
         ms = sorted(per_m)
@@ -627,5 +623,4 @@ def budget_figure(docs: dict[int, dict[str, Any]], path: str | Path) -> Path:
     ax_mse.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return Path(path)

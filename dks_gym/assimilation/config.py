@@ -163,8 +163,7 @@ class AssimilationConfig:
             raise ValueError(f"n_sensors must be a positive integer, got {self.n_sensors!r}")
         if self.split not in SPLITS:
             raise ValueError(f"unknown split {self.split!r}; choose 'train' or 'test'")
-        faults = SensorFaults.from_any(self.faults)
-        object.__setattr__(self, "faults", faults if faults is not None and faults.any else None)
+        object.__setattr__(self, "faults", SensorFaults.from_any(self.faults))
 
     def replace(self, **changes: Any) -> "AssimilationConfig":
         """A copy with fields of this config or of its :class:`FilterConfig` changed (``kind="enkf"``, ``noise_level=0.1``)."""

@@ -31,7 +31,8 @@ from typing import Any
 
 import numpy as np
 
-_SPLIT_KEYS = {"train": 0, "test": 1}
+from .noise import _SPLIT_KEYS
+
 _FAULT_KEY = 0x5EA5  # a fourth key word: the faults' stream never meets the noise fields' (seed, split, traj, frame)
 
 
@@ -85,26 +86,31 @@ class SensorFaults:
 
     @classmethod
     def from_any(cls, value: "SensorFaults | dict[str, Any] | None") -> "SensorFaults | None":
-        """A SensorFaults from itself, a dict of its fields (unknown names refused) or None (no faults)."""
-        if value is None or isinstance(value, SensorFaults):
-            return value
-        if not isinstance(value, dict):
+        """A SensorFaults from itself or a dict of its fields (unknown names refused); None when no fault is on."""
+        if value is not None and not isinstance(value, (SensorFaults, dict)):
             raise ValueError(f"faults must be a SensorFaults, a dict of its fields or None, got {type(value).__name__}")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(value) - known
-        if unknown:
-            raise ValueError(f"unknown sensor faults {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**value)
+        if isinstance(value, dict):
+            known = {f.name for f in dataclasses.fields(cls)}
+            unknown = set(value) - known
+            if unknown:
+                raise ValueError(f"unknown sensor faults {sorted(unknown)}; known: {sorted(known)}")
+            value = cls(**value)
+        return None if value is None or value == SensorFaults() else value
 
-    @property
-    def any(self) -> bool:
-        """Whether any fault is switched on."""
-        return self != SensorFaults()
+    def changed(self) -> dict[str, Any]:
+        """The fields that differ from no faults, by name."""
+        none = SensorFaults()
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if getattr(self, f.name) != getattr(none, f.name)}
 
-    def realize(self, seed: int, split: str, trajectory: int, n_frames: int, n_sensors: int) -> FaultRealization:
-        """This episode's faults, drawn per cell as the cells are read."""
+    def check_layout(self, n_sensors: int) -> None:
+        """Refuse slow sensors named beyond a layout of ``n_sensors`` slots."""
         if any(i >= n_sensors for i in self.slow_sensors):
-            raise ValueError(f"slow_sensors {self.slow_sensors} name slots beyond the layout's {n_sensors} sensors")
+            raise ValueError(f"faults.slow_sensors {self.slow_sensors} name slots beyond the {n_sensors} sensors; "
+                             "give indices into the layout")
+
+    def realize(self, seed: int, split: str, trajectory: int, n_frames: int) -> FaultRealization:
+        """This episode's faults, drawn per cell as the cells are read."""
         return FaultRealization(self, (int(seed) & (2**63 - 1), _SPLIT_KEYS[split], int(trajectory)), n_frames)
 
 
@@ -117,9 +123,6 @@ class FaultRealization:
     def __init__(self, faults: SensorFaults, key: tuple[int, int, int], n_frames: int) -> None:
         self.faults, self.key, self.n_frames = faults, key, n_frames
         self._cells: dict[int, tuple[np.ndarray, float, np.ndarray]] = {}
-        slow = np.zeros(max(faults.slow_sensors, default=-1) + 1, dtype=bool)
-        slow[list(faults.slow_sensors)] = True
-        self._slow = slow
 
     def _draws(self, cell: int) -> tuple[np.ndarray, float, np.ndarray]:
         """(lost (n_frames,) bool, failure step, bias (n_frames,)) of one cell."""
@@ -154,9 +157,7 @@ class FaultRealization:
         if self.faults.quantization > 0:
             values = np.round(values / self.faults.quantization) * self.faults.quantization
         missing = np.array([lost[k] or k >= failure for lost, failure, _ in draws])
-        if len(self._slow):
-            slot_slow = np.zeros(m, dtype=bool)
-            slot_slow[: len(self._slow)] = self._slow[:m]
-            missing |= slot_slow & (k % self.faults.slow_every != 0)
+        if k % self.faults.slow_every != 0:
+            missing |= np.isin(np.arange(m), self.faults.slow_sensors)
         present = ~missing
         return np.where(present, values, np.nan).astype(np.float32), present

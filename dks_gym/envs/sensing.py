@@ -72,8 +72,6 @@ class SensingEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unsupported render_mode {render_mode!r}; choose 'rgb_array' or None")
         self.faults = SensorFaults.from_any(faults)
-        if self.faults is not None and not self.faults.any:
-            self.faults = None
         self.dataset: Dataset = load_dataset(self.benchmark.name, preset, data_path)
         self.split = split
         self.sensor_mode = sensor_mode
@@ -102,9 +100,8 @@ class SensingEnv(gym.Env):
                 f"{'candidate' if sensor_mode == 'select' else 'fluid'} cells exist; use fewer sensors"
             )
         self.n_sensors = int(n_sensors)
-        if self.faults is not None and any(i >= self.n_sensors for i in self.faults.slow_sensors):
-            raise ValueError(f"faults.slow_sensors {self.faults.slow_sensors} name slots beyond the "
-                             f"{self.n_sensors} sensors; give indices into the layout")
+        if self.faults is not None:
+            self.faults.check_layout(self.n_sensors)
         self._default_sensors = sensors if sensors is not None else self.benchmark.paper_layout(self.n_sensors)
 
         # Gaussian readings are unbounded; the largest float32 says so without tripping check_env's infinity warning.
@@ -196,7 +193,7 @@ class SensingEnv(gym.Env):
         self._load_trajectory(int(traj))
         if self.faults is not None:
             self._fault_draws = self.faults.realize(self._noise_seed, self.split, self._trajectory,
-                                                    self.dataset.n_frames, self.n_sensors)
+                                                    self.dataset.n_frames)
         self._k = 0
         return self._observe(), self._info()
 
