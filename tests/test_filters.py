@@ -717,3 +717,16 @@ def test_bias_augmentation_keeps_a_jacobian_that_brings_its_readings():
     torch.testing.assert_close(J1, J2)
     torch.testing.assert_close(h1, x[:, :4] @ Ht.T + x[:, 4:])
     torch.testing.assert_close(J1[:, :, 4:], torch.eye(3, dtype=F64).expand(5, 3, 3))
+
+
+def test_a_malformed_mask_is_refused_clearly():
+    sys = linear_system(seed=24)
+    ekf = EKF(linear_dynamics(sys["A"], sys["H"], constant_jacobians=True), sigma=0.5)
+    ekf.reset(torch.zeros(2, 4, dtype=F64))
+    y = torch.tensor(np.tile(sys["ys"][0], (2, 1)))
+    for mask in (torch.ones(2, 4, dtype=torch.bool), torch.ones(2, 3)):  # wrong shape, not boolean
+        with pytest.raises(ValueError, match="mask must be a boolean tensor shaped like y"):
+            ekf.step(y, mask=mask)
+    y[0, 1] = float("nan")
+    with pytest.raises(ValueError, match="NaN or inf in batch elements \\[0\\]"):  # NaN where the mask says present
+        ekf.step(y, mask=torch.ones(2, 3, dtype=torch.bool))

@@ -241,7 +241,8 @@ def check_measurement(y: Tensor, batch: int, m: int | None, like: Tensor, mask: 
             "(as before / as observe() returns), "
             f"got {y.shape[1]}; a filter's sensor layout is fixed, call reset() (or build a new filter) to change it"
         )
-    present = torch.isfinite(y) if mask is None else torch.isfinite(y) | ~torch.as_tensor(mask, device=y.device)
+    mask = check_mask(mask, y)  # before it is used: a mask of the wrong shape or dtype gets its own message
+    present = torch.isfinite(y) if mask is None else torch.isfinite(y) | ~mask
     finite = present.all(1)
     if not finite.all():
         raise ValueError(
