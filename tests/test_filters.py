@@ -665,6 +665,61 @@ def test_an_episode_without_readings_is_the_forward_run(kind):
         assert torch.equal(a, b)
 
 
+# ------------------------------------------------------------------------------- late readings
+
+
+def test_lead_of_the_lagged_ekf_equals_filterpy_on_the_delay_augmented_system():
+    """Readings d frames late: the EKF kept at the readings' time and led d steps ahead (EKF.lead) is the
+    Kalman filter on the state stacked with its d previous values, observing the oldest (filterpy, built by
+    hand): F_aug shifts the stack, H_aug = [0 ... 0 H], Q_aug = Q in the newest block. Step by step, the
+    newest block of the augmented filter equals the lead; the lagged filter itself is unchanged by leading."""
+    sys = linear_system(seed=41, n_steps=25)
+    A, H, Q, R, P0, z0 = sys["A"], sys["H"], sys["Q"], sys["R"], sys["P0"], sys["z0"]
+    r, m, d = A.shape[0], H.shape[0], 2
+    n = r * (d + 1)
+    kf = KalmanFilter(dim_x=n, dim_z=m)
+    kf.F = np.zeros((n, n))
+    kf.F[:r, :r] = A  # newest block advances; older blocks shift down by one
+    for j in range(1, d + 1):
+        kf.F[j * r:(j + 1) * r, (j - 1) * r:j * r] = np.eye(r)
+    kf.H = np.zeros((m, n))
+    kf.H[:, d * r:] = H
+    kf.Q = scipy.linalg.block_diag(Q, np.zeros((d * r, d * r)))
+    kf.R = R
+    # The stack starts with z_0 in every block (no frames before 0): fully correlated copies of P0.
+    kf.x = np.tile(z0, d + 1)
+    kf.P = np.kron(np.ones((d + 1, d + 1)), P0)
+    ekf = EKF(linear_dynamics(A, H, constant_jacobians=False), R=torch.tensor(R), Q=torch.tensor(Q))
+    ekf.reset(torch.tensor(z0)[None], torch.tensor(P0))
+    for k, y_now in enumerate(sys["ys"], start=1):  # y_now: the reading of frame k, delivered at k + d
+        kf.predict()
+        if k > d:  # at frame k the reading of frame k - d arrives
+            kf.update(sys["ys"][k - d - 1])
+            ekf.step(torch.tensor(sys["ys"][k - d - 1])[None])
+        before = ekf.mean.clone()
+        ahead = ekf.lead(min(k, d))
+        assert torch.equal(ekf.mean, before)
+        np.testing.assert_allclose(ahead.mean[0].numpy(), kf.x[:r], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ahead.cov[0].numpy(), kf.P[:r, :r], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ekf.mean[0].numpy(), kf.x[min(k, d) * r:(min(k, d) + 1) * r], rtol=0, atol=1e-9)
+
+
+def test_enkf_lead_is_the_forecast_its_next_steps_would_make():
+    """EnKF.lead(d) draws from a copy of the generator: equal to d forecast-only steps of the filter, which it
+    leaves (generator included) as it was."""
+    sys = linear_system(seed=42)
+    dyn = linear_dynamics(sys["A"], sys["H"], constant_jacobians=False)
+    f = EnKF(dyn, sigma=0.5, Q=1e-2, n_members=6, generator=3)
+    f.reset(torch.tensor(sys["z0"]).expand(2, -1).clone())
+    f.step(torch.tensor(sys["ys"][:1]).expand(2, -1))
+    state, ensemble = f.generator.get_state(), f.ensemble.clone()
+    ahead = f.lead(3)
+    assert torch.equal(f.generator.get_state(), state) and torch.equal(f.ensemble, ensemble)
+    for _ in range(3):
+        f.step(assimilate=False)
+    assert torch.equal(ahead.ensemble, f.ensemble)
+
+
 # ------------------------------------------------------------------------------- sensor bias
 
 

@@ -300,6 +300,54 @@ def test_missing_readings_through_the_wrapper(models: dict, filt: str) -> None:
     assert np.all(np.isfinite(half)) and half != full and half != forward
 
 
+@pytest.mark.filterwarnings("ignore:.*not within the observation space:UserWarning")  # NaN readings, by design
+@pytest.mark.parametrize("filt", ["ekf", "enkf"])
+def test_late_readings_are_assimilated_at_their_observation_time(models: dict, filt: str) -> None:
+    """With readings d frames late the estimate at frame k is the d-step forecast of the analysis at k - d.
+    Independent path: the on-time env with the last d readings marked missing (masked steps forecast only),
+    through the same core; equal at the final frame, mean, covariance and decoded field, for both filters (the
+    EnKF's lead draws the noise its next forecasts would). Before the first late reading arrives the estimate
+    is the forward run."""
+    from dks_gym.assimilation import Assimilation
+    from dks_gym.envs import SensingEnv
+
+    d, model = 3, models["mlp"]
+    config = FilterConfig(kind=filt, n_members=8)
+
+    def run(env: SensingEnv, hide_last: int = 0, kind: str = filt) -> tuple[list, Assimilation, list]:
+        core = Assimilation(model, FilterConfig(kind=kind, n_members=8), uncertainty=False)
+        env.reset(seed=0, options={"trajectory": 1})
+        snaps, infos = [core.start([env], seed=0)], []
+        n_t = env.dataset.n_frames
+        for k in range(1, n_t):
+            obs, _, _, _, info = env.step(None)
+            infos.append(info)
+            if k > n_t - 1 - hide_last:
+                obs = np.full_like(obs, np.nan)
+            snaps.append(core.step([env], obs[None], info["sensors"][None]))
+        return snaps, core, infos
+
+    late, late_core, infos = run(SensingEnv("burgers", preset="small", faults={"latency": d}))
+    assert [i["reading_time_index"] for i in infos[:5]] == [1 - d, 2 - d, 3 - d, 4 - d, 5 - d]
+    on_time, on_time_core, _ = run(SensingEnv("burgers", preset="small"), hide_last=d)
+    torch.testing.assert_close(late_core._now.mean, on_time_core._now.mean, rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(late_core._now.cov, on_time_core._now.cov, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(late[-1].estimate, on_time[-1].estimate, rtol=1e-5, atol=1e-6)
+    assert late_core.filter.n_steps == len(late) - 1 - d  # the filter itself is d frames behind
+    forward, _, _ = run(SensingEnv("burgers", preset="small"), kind="forward")
+    for k in range(1, d + 1):
+        assert late[k].diagnostics["gain_norm"].tolist() == [0.0]
+        if filt == "ekf":  # (the forward run is the EKF's; an ensemble's mean forecast is another thing)
+            np.testing.assert_allclose(late[k].latent_mean, forward[k].latent_mean, rtol=1e-6, atol=1e-7)
+    history = late_core.history()
+    assert history["gain_norm"].shape == (len(late) - 1, 1) and np.isnan(history["spread"][:d]).all()
+    mixed = [SensingEnv("burgers", preset="small", faults={"latency": 1}), SensingEnv("burgers", preset="small")]
+    for env in mixed:
+        env.reset(seed=0)
+    with pytest.raises(ValueError, match="different numbers of frames"):
+        Assimilation(model, config).start(mixed, seed=0)
+
+
 def test_koopman_operator_computed_once_per_episode(models: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     """For a fixed mu the Koopman K(mu) is built at reset and handed to the EKF as a constant tensor."""
     model = models["koopman"]

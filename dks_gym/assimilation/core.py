@@ -135,6 +135,8 @@ class Assimilation:
             model, reconstruction_var, self.device, self.dtype)
         self._sensors = _SensorRows()
         self._filter: EKF | EnKF | None = None
+        self._now: EKF | EnKF | None = None  # the filter as of the current frame (its lead when readings are late)
+        self._lag = self._k = 0
         self._mu: torch.Tensor | None = None
 
     @property
@@ -172,6 +174,7 @@ class Assimilation:
         else:
             z0 = approximate_initial_latent(self.model, envs[0].dataset).expand(len(envs), -1)
         self._filter.reset(z0.to(self.device, self.dtype).clone(), self.config.initial_covariance(self.model))
+        self._lag, self._k, self._now = _latency(envs), 0, self._filter
         return self._snapshot(envs)
 
     @torch_threads("assimilate")
@@ -180,38 +183,51 @@ class Assimilation:
         the forward run (Eqs. 15-17), decode the mean and score it against the envs' truth (Eq. 18).
 
         A missing reading (NaN, as a faulty sensor reports it) is left out of the update; an element with none
-        present only forecasts."""
+        present only forecasts. Late readings (the envs' ``faults.latency`` = d frames) are assimilated at
+        their observation time: the filter stays at frame k - d, steps only once k > d (frame 0's reading,
+        which arrives at k = d, is the initial frame the filter starts from) and the estimate at frame k is
+        its d-step forecast (:meth:`~dks_gym.filters.EKF.lead`)."""
         if self._filter is None:
             raise RuntimeError("call reset() before step()")
         self._sensors.current = np.asarray(sensors)
-        y = torch.as_tensor(np.asarray(readings), dtype=self.dtype, device=self.device)
-        present = torch.isfinite(y)
-        self._filter.step(y, assimilate=self.config.assimilates, mask=None if bool(present.all()) else present)
-        return self._snapshot(envs, with_diagnostics=True)
+        self._k += 1
+        stepped = self._k > self._lag  # the readings measure frame k - lag >= 1
+        if stepped:
+            y = torch.as_tensor(np.asarray(readings), dtype=self.dtype, device=self.device)
+            present = torch.isfinite(y)
+            self._filter.step(y, assimilate=self.config.assimilates, mask=None if bool(present.all()) else present)
+        self._now = self._filter.lead(min(self._k, self._lag)) if self._lag else self._filter
+        return self._snapshot(envs, with_diagnostics=True, stepped=stepped)
 
     def _truth(self, envs: Sequence[SensingEnv]) -> torch.Tensor:
         return torch.as_tensor(np.stack([e.true_state for e in envs]), dtype=self.dtype, device=self.device)
 
-    def _snapshot(self, envs: Sequence[SensingEnv], with_diagnostics: bool = False) -> Snapshot:
+    def _snapshot(self, envs: Sequence[SensingEnv], with_diagnostics: bool = False,
+                  stepped: bool = True) -> Snapshot:
         with torch.no_grad():
-            estimate = self.model.decode(self._filter.mean.detach(), self._mu)
+            estimate = self.model.decode(self._now.mean.detach(), self._mu)
         truth = self._truth(envs).to(estimate)
         bench = envs[0].benchmark
         std = torch.as_tensor(envs[0].dataset.stats_std, device=estimate.device)
         snap = Snapshot(estimate=estimate,
                         mse=field_errors(estimate, truth, bench.scored_indices).cpu().numpy(),
                         normalized_mse=field_errors(estimate, truth, bench.scored_indices, std).cpu().numpy(),
-                        latent_mean=self._filter.mean.detach().cpu().numpy())
+                        latent_mean=self._now.mean.detach().cpu().numpy())
         if self.uncertainty:
             snap.estimate_std = self.predictive_std(estimate)
             scores = gaussian_scores(estimate, snap.estimate_std, truth, bench.scored_indices,
                                      envs[0].dataset.stats_std)
             snap.coverage, snap.nees, snap.crps = scores["coverage"], scores["nees"], scores["crps"]
-        if with_diagnostics:
+        if with_diagnostics and stepped:
             d = self._filter.diagnostics
             snap.diagnostics = {"gain_norm": d.gain_norm[-1].cpu().numpy(), "spread": d.spread[-1].cpu().numpy()}
             if isinstance(self._filter, EKF):  # the EnKF uses no forecast Jacobian
                 snap.diagnostics["forecast_norm"] = d.forecast_norm[-1].cpu().numpy()
+        elif with_diagnostics:  # waiting for the first late reading: no update, the filter has not stepped
+            batch = len(envs)
+            snap.diagnostics = {"gain_norm": np.zeros(batch), "spread": np.full(batch, np.nan)}
+            if isinstance(self._filter, EKF):
+                snap.diagnostics["forecast_norm"] = np.full(batch, np.nan)
         return snap
 
     def predictive_std(self, estimate: torch.Tensor | None = None) -> torch.Tensor:
@@ -221,15 +237,15 @@ class Assimilation:
         the filter mean; EnKF: ``sqrt(var of the decoded members + reconstruction_var)``. ``estimate``: the
         decoded filter mean, when the caller has it already.
         """
-        if self._filter is None:
+        if self._now is None:
             raise RuntimeError("call start() before predictive_std()")
         with torch.no_grad():
             if estimate is None:
-                estimate = self.model.decode(self._filter.mean.detach(), self._mu)
-            if isinstance(self._filter, EnKF):
-                var = ensemble_variance(self.model, self._filter.ensemble, self._mu, center=estimate)
+                estimate = self.model.decode(self._now.mean.detach(), self._mu)
+            if isinstance(self._now, EnKF):
+                var = ensemble_variance(self.model, self._now.ensemble, self._mu, center=estimate)
             else:
-                var = jacobian_variance(self.model, self._filter.mean, self._mu, self._filter.cov)
+                var = jacobian_variance(self.model, self._now.mean, self._mu, self._now.cov)
             var = var.reshape(estimate.shape)
             if self.reconstruction_var is not None:
                 var = var + self.reconstruction_var.to(var)
@@ -241,20 +257,35 @@ class Assimilation:
 
     def belief(self) -> np.ndarray:
         """[mean z; log diag P] per element, (B, 2r) float32."""
-        var = self._filter.cov.diagonal(dim1=-2, dim2=-1).clamp_min(1e-30)
-        return torch.cat([self._filter.mean, var.log()], dim=1).detach().cpu().numpy().astype(np.float32)
+        var = self._now.cov.diagonal(dim1=-2, dim2=-1).clamp_min(1e-30)
+        return torch.cat([self._now.mean, var.log()], dim=1).detach().cpu().numpy().astype(np.float32)
 
     def history(self) -> dict[str, np.ndarray | None]:
         """Over the steps so far: ``forecast_norm`` (n, B) (None for the EnKF), ``step_seconds`` (n,), and
         ``divergence_resets`` (B,), how many times each element was restarted, ``gain_norm`` and ``spread``
-        (n, B) (see :class:`~dks_gym.filters.common.Diagnostics`)."""
+        (n, B) (see :class:`~dks_gym.filters.common.Diagnostics`). With late readings the first steps, while
+        the filter waits for its first reading, have gain 0 and NaN spread and forecast norm; ``step_seconds``
+        holds the filter's steps only."""
         d = self._filter.diagnostics
-        return {"gain_norm": d.stacked("gain_norm").cpu().double().numpy(),
-                "spread": d.stacked("spread").cpu().double().numpy(),
-                "forecast_norm": d.stacked("forecast_norm").cpu().double().numpy()
-                if isinstance(self._filter, EKF) else None,
+        waited = self._k - len(d)
+
+        def padded(name: str, value: float) -> np.ndarray:
+            steps = d.stacked(name).cpu().double().numpy() if len(d) else np.empty((0, len(self._filter.mean)))
+            return np.concatenate([np.full((waited, steps.shape[1]), value), steps])
+
+        return {"gain_norm": padded("gain_norm", 0.0), "spread": padded("spread", np.nan),
+                "forecast_norm": padded("forecast_norm", np.nan) if isinstance(self._filter, EKF) else None,
                 "step_seconds": np.asarray(d.wall_time, dtype=np.float64),
                 "divergence_resets": d.stacked("reset").sum(0).cpu().numpy().astype(np.int64)}
+
+
+def _latency(envs: Sequence[SensingEnv]) -> int:
+    """The frames by which the envs' readings are late (their faults' latency), the same for every env."""
+    lags = {0 if e.faults is None else e.faults.latency for e in envs}
+    if len(lags) > 1:
+        raise ValueError(f"the envs' readings are late by different numbers of frames {sorted(lags)}; "
+                         "one batch needs one latency (give every env the same faults)")
+    return lags.pop()
 
 
 def _check_reconstruction_var(model: Any, value: Any, device: torch.device, dtype: torch.dtype) -> torch.Tensor:

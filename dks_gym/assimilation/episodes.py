@@ -98,7 +98,8 @@ class AssimilationResult:
     @property
     def max_forecast_norm(self) -> np.ndarray | None:
         """(B,) max_k ||F_k||_2 per trajectory (the paper's operator-norm table); None for the EnKF."""
-        return None if self.forecast_norm is None else self.forecast_norm.max(axis=0)
+        # fmax ignores the NaN of steps the filter did not take (late readings)
+        return None if self.forecast_norm is None else np.fmax.reduce(self.forecast_norm, axis=0)
 
     @property
     def da_step_seconds(self) -> float:

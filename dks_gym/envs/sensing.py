@@ -289,6 +289,8 @@ class SensingEnv(gym.Env):
             "split": self.split,
             "sensors": self._sensors.copy(),
             "mask": self._present.copy(),
+            # the frame the readings measure: time_index - latency (-1 while late readings have not arrived)
+            "reading_time_index": self._k - (0 if self.faults is None else self.faults.latency),
             "sigma": self.sigma,
             "noise_seed": self._noise_seed,
         }

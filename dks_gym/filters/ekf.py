@@ -16,6 +16,8 @@ its mean is exactly the model rollout ``z_{k+1} = f(z_k)``.
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import Tensor
 
@@ -164,6 +166,22 @@ class EKF(SequentialFilter):
         """Current covariance ``(B, r, r)``."""
         self._require_reset()
         return self.state.cov
+
+    def lead(self, steps: int) -> "EKF":
+        """A copy forecast ``steps`` steps ahead with no measurement (Eqs. 13-14 repeated); this filter is unchanged.
+
+        For readings that arrive late: the analysis stays at the readings' time and the estimate now is its
+        forecast. The copy is for reading (``mean``, ``cov``); it records no diagnostics.
+        """
+        self._require_reset()
+        ahead = copy.copy(self)
+        ahead.record_diagnostics = False
+        state = self.state
+        for _ in range(int(steps)):
+            state, _ = ekf_forecast(state, self.dynamics, self._process_noise(state.mean),
+                                    jacobian_method=self.jacobian_method, check=False)
+        ahead.state = state
+        return ahead
 
     def step(self, y: Tensor | None = None, assimilate: bool = True, mask: Tensor | None = None) -> Tensor:
         """Forecast one step and, if ``assimilate``, update with ``y`` ``(B, m)``; return the new mean ``(B, r)``.

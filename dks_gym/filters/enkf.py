@@ -20,6 +20,7 @@ gain is formed (:func:`schur_localization` builds the usual Schur-product taper)
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 from typing import Literal
@@ -248,6 +249,25 @@ class EnKF(SequentialFilter):
         """Sample covariance ``(B, r, r)`` of the ensemble (divisor ``n - 1``)."""
         self._require_reset()
         return ensemble_state(self.ensemble).cov
+
+    def lead(self, steps: int) -> "EnKF":
+        """A copy whose members are forecast ``steps`` steps ahead with process noise and no measurement; this
+        filter and its generator are unchanged (the copy draws from a copy of the generator, so its noise is
+        the noise this filter's next forecasts would draw). For readings that arrive late (see
+        :meth:`EKF.lead`); the copy is for reading (``mean``, ``cov``, ``ensemble``).
+        """
+        self._require_reset()
+        ahead = copy.copy(self)
+        ahead.record_diagnostics = False
+        generator = self.generator
+        if generator is not None:
+            generator = torch.Generator(device=generator.device)
+            generator.set_state(self.generator.get_state())
+        E = self.ensemble
+        for _ in range(int(steps)):
+            E = enkf_forecast(E, self.dynamics, self._process_noise(E), generator, check=False)
+        ahead.ensemble, ahead.generator = E, generator
+        return ahead
 
     def step(self, y: Tensor | None = None, assimilate: bool = True, mask: Tensor | None = None) -> Tensor:
         """Forecast every member and, if ``assimilate``, update with ``y`` ``(B, m)``; return the mean ``(B, r)``.
