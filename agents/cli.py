@@ -38,6 +38,10 @@ from .evaluate import POLICIES
 @click.option("--budgets", default=None,
               help="Comma-separated sensor counts, e.g. 2,4,8,16,32: one run per budget under OUT/m<m>, then "
                    "OUT/budgets.md and OUT/budgets.png (error vs budget); replaces --n-sensors.")
+@click.option("--shred", default="",
+              help="Comma-separated static policies of the run (e.g. qr) whose layout a SHRED baseline (a shallow "
+                   "recurrent decoder from the readings to the field, no filter) is trained on and scored with: "
+                   "a shred-<policy> row per policy.")
 @click.option("--random-seeds", type=click.IntRange(min=1), default=5, show_default=True,
               help="How many seeded random layouts 'random' evaluates.")
 @click.option("--greedy-candidates", type=click.IntRange(min=1), default=32, show_default=True,
@@ -58,7 +62,7 @@ from .evaluate import POLICIES
 def evaluate_placement_command(benchmark: str, policies: str, model: str, filter_: str, preset: str,
                                data_preset: str, n_sensors: int, noise_level: float, noise_seed: int,
                                noise_seeds: int, faults: str, constraint: str, budgets: str | None,
-                               random_seeds: int,
+                               shred: str, random_seeds: int,
                                greedy_candidates: int,
                                greedy_trajectories: int | None,
                                sequential_ckpt: Path | None, ppo_ckpt: Path | None, agent_timesteps: int | None,
@@ -82,7 +86,7 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
         allowed = constraint if constraint in ("fluid", "surface") else _load_array(constraint)
         options = dict(model=model, filter=filter_, model_preset=preset, data_preset=data_preset,
                        noise_level=noise_level, noise_seed=noise_seed, noise_seeds=noise_seeds, faults=scenario,
-                       constraint=allowed,
+                       constraint=allowed, shred=[name.strip() for name in shred.split(",") if name.strip()],
                        random_seeds=random_seeds, greedy_candidates=greedy_candidates,
                        greedy_trajectories=greedy_trajectories, sequential=sequential_ckpt, ppo=ppo_ckpt,
                        agent_timesteps=agent_timesteps, device=device, train_if_missing=train_if_missing,

@@ -41,7 +41,8 @@ import numpy as np
 
 from dks_gym.assimilation import AssimilationResult
 from dks_gym.envs import SensorFaults
-from dks_gym.evaluation.results import make_record, new_results, save_results
+from dks_gym.evaluation.results import UNCERTAINTY_SCORES, make_record, new_results, save_results
+from dks_gym.models.shred import Shred, ShredConfig, read_episodes, scored_mse
 
 from .adaptive import PPOAdaptive
 from .baselines import GREEDY_OBJECTIVES, GreedyLayout, PaperLayout, QRLayout, RandomLayout
@@ -142,6 +143,47 @@ def evaluate_policy(task: PlacementTask, policy: PlacementPolicy, trajectories: 
     per_decision = (time.perf_counter() - tic) / len(index)
     result = run_layouts(task.model, ds, layouts, index, config, noise_seeds=seeds)
     return PolicyResult(policy, result, layouts, per_decision)
+
+
+def evaluate_shred(task: PlacementTask, pr: PolicyResult, noise_seeds: Sequence[int],
+                   config: ShredConfig = ShredConfig(), progress: bool = False) -> dict[str, Any]:
+    """SHRED (:mod:`dks_gym.models.shred`) trained on the training split with the layout of a static policy's
+    result ``pr`` and the task's noise and faults, scored on the same test episodes: a results record named
+    ``shred-<policy>`` (model "shred", filter "none") with the placement fields, and ``pod_floor_time_mean_mse``,
+    the error of the POD projection of the truth that bounds it."""
+    if pr.policy.adaptive or not np.all(pr.layouts == pr.layouts[:1]):
+        raise ValueError(f"SHRED reads one fixed layout; {pr.name!r} gives a layout per episode or per step")
+    ds, cfg = task.dataset, task.config
+    layout = pr.layouts[0]
+    shred = Shred(ds, layout, noise_level=cfg.noise_level, faults=cfg.faults, config=config).fit(progress=progress)
+    index, seeds = episodes(task, noise_seeds=noise_seeds)
+    tic = time.perf_counter()
+    readings = read_episodes(ds, layout, index, seeds, split=cfg.split, noise_level=cfg.noise_level,
+                             faults=cfg.faults)
+    estimate = shred.reconstruct(readings, ds.params(cfg.split)[index])
+    seconds = time.perf_counter() - tic
+    truth = np.stack([ds.trajectory(cfg.split, int(t)) for t in index])
+    step = scored_mse(estimate, truth, task.benchmark.scored_indices)
+    floor = shred.pod_floor(truth)[:, 1:].mean()
+    final, tm = step[:, -1], step[:, 1:].mean(axis=1)
+    rec: dict[str, Any] = {
+        "experiment": f"placement/shred-{pr.name}", "model": "shred", "filter": "none", "initial": "approximate",
+        "noise": float(cfg.noise_level), "r": int(shred.network.decoder[-1].out_features), "T": 1, "n_members": None,
+        "batch": len(index), "final_mse_mean": float(final.mean()),
+        "final_mse_std": float(final.std(ddof=1)) if len(final) > 1 else None,
+        "per_step_mse_mean": [float(v) for v in step.mean(axis=0)],
+        "per_trajectory_final_mse": [float(v) for v in final], "max_forecast_norm": None,
+        "da_step_seconds": seconds / (ds.n_frames - 1), "wall_time": shred.fit_seconds + seconds,
+        "trajectories": [int(t) for t in index], "params": [float(v) for v in ds.params(cfg.split)[index]],
+        "per_trajectory_step_mse": [[float(v) for v in row] for row in step],
+        **{f"final_{n}_mean": None for n in UNCERTAINTY_SCORES},
+        "policy": f"shred-{pr.name}", "adaptive": False, "sensors": [int(c) for c in layout],
+        "time_mean_mse_mean": float(tm.mean()), "time_mean_mse_std": float(tm.std(ddof=1)) if len(tm) > 1 else None,
+        "per_trajectory_time_mean_mse": [float(v) for v in tm], "fit_seconds": shred.fit_seconds,
+        "offline_seconds": shred.fit_seconds, "decision_seconds": None, "policy_config": shred.describe(),
+        "noise_seeds": [int(s) for s in seeds], "pod_floor_time_mean_mse": float(floor),
+    }
+    return rec
 
 
 def _record(pr: PolicyResult, task: PlacementTask) -> dict[str, Any]:
@@ -444,6 +486,8 @@ def evaluate_placement(
     train_if_missing: bool = False,
     task: PlacementTask | None = None,
     skip_unfit: bool = False,
+    shred: Sequence[str] = (),
+    shred_config: ShredConfig = ShredConfig(),
     log: Callable[[str], None] = print,
 ) -> tuple[dict[str, Any], list[PolicyResult]]:
     """Fit and run the named policies on BENCHMARK's test split; write JSON, table and figure to ``out``.
@@ -457,7 +501,9 @@ def evaluate_placement(
     (its config is used as is, its noise seed being the first). Learned policies ("sequential", "ppo") load
     the given checkpoints or train, saving their checkpoints and learning curves under ``out/agents``.
     ``skip_unfit``: leave out (and record in ``config.skipped_policies``) a policy that cannot be fitted, e.g.
-    QR with more sensors than the data have POD modes, instead of stopping.
+    QR with more sensors than the data have POD modes, instead of stopping. ``shred``: names of static
+    policies in the run whose layout a SHRED baseline is trained on and scored with (:func:`evaluate_shred`;
+    ``shred_config`` its settings), each a ``shred-<policy>`` row.
     """
     start = time.perf_counter()
     if task is None:
@@ -499,8 +545,21 @@ def evaluate_placement(
     forward = run_layouts(task.model, task.dataset, static if static is not None else
                           np.repeat(task.benchmark.paper_layout(task.n_sensors)[None], len(index), 0),
                           index, task.config.replace(kind="forward"), noise_seeds=episode_seeds)
-    doc = add_paired_vs_random(placement_document(task, results, forward, model_preset=model_preset,
-                                                  wall_time=time.perf_counter() - start))
+    estimators = []
+    for name in dict.fromkeys(shred):
+        pr = next((pr for pr in results if pr.name == name), None)
+        if pr is None:
+            log(f"{'shred-' + name:>14}: skipped ({name!r} is not in this run)")
+            skipped[f"shred-{name}"] = f"{name!r} is not in this run"
+            continue
+        rec = evaluate_shred(task, pr, seeds, shred_config)
+        log(f"{rec['policy']:>14}: fit {rec['fit_seconds']:8.2f} s, time-avg MSE {rec['time_mean_mse_mean']:.3e}, "
+            f"final MSE {rec['final_mse_mean']:.3e} (POD floor {rec['pod_floor_time_mean_mse']:.1e})")
+        estimators.append(rec)
+    doc = placement_document(task, results, forward, model_preset=model_preset,
+                             wall_time=time.perf_counter() - start)
+    doc["records"].extend(estimators)
+    doc = add_paired_vs_random(doc)
     doc["config"]["skipped_policies"] = skipped
     if out is not None:
         save_results(doc, out / "placement.json")

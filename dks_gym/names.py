@@ -4,5 +4,6 @@ from __future__ import annotations
 
 MODEL_KINDS = ("koopman", "pdmd", "mlp", "xlstm")  # the latent models, in the paper's order
 FILTERS = ("forward", "ekf", "enkf")  # "forward" is the forward run: the filter loop with the update off
+ESTIMATORS = ("shred",)  # reconstructors without a latent model or a filter (their records' filter is "none")
 
-__all__ = ["FILTERS", "MODEL_KINDS"]
+__all__ = ["ESTIMATORS", "FILTERS", "MODEL_KINDS"]

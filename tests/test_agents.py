@@ -649,3 +649,26 @@ def test_m16_layouts_on_cfd_geometries_and_their_figure(bench: str, cfd_tasks_m1
     assert qr["paired_vs_random"]["n_random"] == 2
     assert (tmp_path / "placement_layouts.png").stat().st_size > 10_000
     assert "log(MSE / random mean)" in (tmp_path / "placement.md").read_text()
+
+
+def test_shred_ranks_beside_the_filters(burgers_task: PlacementTask, tmp_path: Path) -> None:
+    """evaluate_placement(shred=[...]) trains SHRED on a static policy's layout and scores it on the same
+    episodes: a shred-<policy> record that the results schema accepts, in the table and the budget table; a
+    policy not in the run is skipped with its reason."""
+    from dks_gym.evaluation.results import load_results
+    from dks_gym.models.shred import ShredConfig
+    from dks_gym_agents.evaluate import evaluate_budgets
+
+    docs = evaluate_budgets("burgers", "paper,random", [4], task=burgers_task, random_seeds=2, out=tmp_path,
+                            shred=["paper", "qr"], shred_config=ShredConfig(epochs=2, noise_seeds=1, rank=4),
+                            log=lambda _: None)
+    doc = load_results(tmp_path / "m4" / "placement.json")
+    rec = next(r for r in doc["records"] if r["policy"] == "shred-paper")
+    paper = next(r for r in doc["records"] if r["policy"] == "paper")
+    assert rec["model"] == "shred" and rec["filter"] == "none" and rec["sensors"] == paper["sensors"]
+    assert rec["trajectories"] == paper["trajectories"] and rec["noise_seeds"] == paper["noise_seeds"]
+    assert len(rec["per_trajectory_time_mean_mse"]) == paper["batch"] and "paired_vs_random" in rec
+    assert 0 <= rec["pod_floor_time_mean_mse"] <= rec["time_mean_mse_mean"]
+    assert "| shred-paper |" in (tmp_path / "m4" / "placement.md").read_text().replace(" (adaptive)", "")
+    assert "| shred-paper |" in (tmp_path / "budgets.md").read_text()
+    assert docs[4]["config"]["skipped_policies"] == {"shred-qr": "'qr' is not in this run"}

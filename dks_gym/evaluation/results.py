@@ -15,8 +15,8 @@ One file holds the runs of one benchmark with one model preset::
 A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run over the test split::
 
     experiment  str     "main", "enkf", "ensemble", "noise", "latent", "multistep", "operator_norm", "timing"
-    model       str     "koopman", "pdmd", "mlp", "xlstm"
-    filter      str     "forward", "ekf", "enkf"
+    model       str     "koopman", "pdmd", "mlp", "xlstm"; or an estimator without a filter: "shred"
+    filter      str     "forward", "ekf", "enkf"; "none" for an estimator (r: its output rank)
     initial     str     "approximate", "exact"
     noise       float   noise level (sigma / max |observed channel|)
     r, T        int     latent dimension, training horizon
@@ -57,12 +57,13 @@ from typing import Any
 import numpy as np
 
 from ..atomic import atomic_path
-from ..names import FILTERS, MODEL_KINDS
+from ..names import ESTIMATORS, FILTERS, MODEL_KINDS
 
 SCHEMA = "dks-gym-results"
 SCHEMA_VERSION = 1
 RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_members")
-MODELS = MODEL_KINDS
+MODELS = MODEL_KINDS + ESTIMATORS
+RECORD_FILTERS = FILTERS + ("none",)  # "none": an estimator's record (no filter)
 INITIALS = ("approximate", "exact")
 _REQUIRED_TOP = ("schema", "schema_version", "benchmark", "preset", "dataset", "config", "records")
 #: The scores of the predictive std a record may hold (``final_{name}_mean``, ``per_step_{name}_mean``).
@@ -184,7 +185,7 @@ def validate_record(rec: Any, where: str = "record") -> None:
         raise ResultsError(f"{where} lacks {', '.join(missing)}")
     if not isinstance(rec["experiment"], str) or not rec["experiment"]:
         raise ResultsError(f"{where}: 'experiment' must be a non-empty string")
-    for name, allowed in (("model", MODELS), ("filter", FILTERS), ("initial", INITIALS)):
+    for name, allowed in (("model", MODELS), ("filter", RECORD_FILTERS), ("initial", INITIALS)):
         if rec[name] not in allowed:
             raise ResultsError(f"{where}: {name!r} is {rec[name]!r}; expected one of {', '.join(allowed)}")
     if not _is_number(rec["noise"], nullable=False) or rec["noise"] <= 0:
@@ -207,8 +208,9 @@ def validate_record(rec: Any, where: str = "record") -> None:
         raise ResultsError(f"{where}: 'per_step_mse_mean' must have one entry per frame (at least 2)")
     if rec["max_forecast_norm"] is not None:
         _check_list(rec, "max_forecast_norm", where, batch)
-    elif rec["filter"] != "enkf":
-        raise ResultsError(f"{where}: 'max_forecast_norm' may be null only for the EnKF (it uses no Jacobian)")
+    elif rec["filter"] not in ("enkf", "none"):
+        raise ResultsError(f"{where}: 'max_forecast_norm' may be null only for the EnKF (it uses no Jacobian) "
+                           "and an estimator without a filter")
     curves = rec.get("per_trajectory_step_mse")
     if curves is not None:
         n_t = len(rec["per_step_mse_mean"])
