@@ -659,9 +659,18 @@ def test_shred_ranks_beside_the_filters(burgers_task: PlacementTask, tmp_path: P
     from dks_gym.models.shred import ShredConfig
     from dks_gym_agents.evaluate import evaluate_budgets
 
-    docs = evaluate_budgets("burgers", "paper,random", [4], task=burgers_task, random_seeds=2, out=tmp_path,
-                            shred=["paper", "qr"], shred_config=ShredConfig(epochs=2, noise_seeds=1, rank=4),
-                            log=lambda _: None)
+    from dks_gym_agents.summary import write_summary
+
+    quick = dict(task=burgers_task, random_seeds=2, shred=["paper", "qr"], log=lambda _: None,
+                 shred_config=ShredConfig(epochs=2, noise_seeds=1, rank=4))
+    docs = evaluate_budgets("burgers", "paper,random", [4], out=tmp_path / "burgers" / "none", **quick)
+    faulty = evaluate_budgets("burgers", "paper,random", [4], out=tmp_path / "burgers" / "default",
+                              faults="default", **quick)
+    page = write_summary(tmp_path, tmp_path / "benchmark.md").read_text()
+    assert "![burgers, none: error vs budget](./burgers/none/budgets.png)" in page  # the figure beside its table
+    cost = faulty[4]["records"][0]["time_mean_mse_mean"] / docs[4]["records"][0]["time_mean_mse_mean"]
+    assert f"| paper | {cost:.2f} |" in page  # the faults' cost, default over none
+    tmp_path = tmp_path / "burgers" / "none"
     doc = load_results(tmp_path / "m4" / "placement.json")
     rec = next(r for r in doc["records"] if r["policy"] == "shred-paper")
     paper = next(r for r in doc["records"] if r["policy"] == "paper")

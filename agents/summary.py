@@ -1,0 +1,128 @@
+"""The placement benchmark's summary: every benchmark and scenario of a benchmark folder in one page.
+
+A benchmark folder holds ``<benchmark>/<scenario>/m<m>/placement.json``, as ``dks-gym evaluate-placement
+BENCHMARK --budgets ... --out FOLDER/<benchmark>/<scenario>`` writes them (a scenario is a fault setting
+such as ``none`` or ``default``, or a constraint such as ``surface-none``). :func:`write_summary` writes one
+page: the reading (``FOLDER/reading.md``, written by a person), then per benchmark and scenario the
+error-vs-budget figure and the best filter policy at each budget beside the random layouts, the forward run
+and SHRED; the cost of the faults per policy (scenario ``default`` against ``none``). Regenerate it with
+``python -m dks_gym_agents.summary FOLDER OUT.md``.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dks_gym.evaluation.results import load_results
+
+from .evaluate import describe_faults
+
+
+def _sci(x: float | None) -> str:
+    return "-" if x is None or not np.isfinite(x) else f"{x:.2e}"
+
+
+def load_benchmark(folder: str | Path) -> dict[str, dict[str, dict[int, dict[str, Any]]]]:
+    """``{benchmark: {scenario: {m: placement document}}}`` of a benchmark folder."""
+    out: dict[str, dict[str, dict[int, dict[str, Any]]]] = {}
+    for path in sorted(Path(folder).glob("*/*/m*/placement.json")):
+        m = int(path.parent.name[1:])
+        out.setdefault(path.parents[2].name, {}).setdefault(path.parents[1].name, {})[m] = load_results(path)
+    if not out:
+        raise FileNotFoundError(f"no <benchmark>/<scenario>/m<m>/placement.json under {folder}")
+    return out
+
+
+def _by_policy(doc: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return {r["policy"]: r for r in doc["records"] if r.get("policy")}
+
+
+def _random_mean(recs: dict[str, dict[str, Any]]) -> float | None:
+    values = [r["time_mean_mse_mean"] for name, r in recs.items() if name.startswith("random-")]
+    return float(np.mean(values)) if values else None
+
+
+def _is_filter_policy(name: str) -> bool:
+    return name != "forward" and not name.startswith(("random-", "shred-"))
+
+
+def summary_table(runs: dict[str, dict[str, dict[int, dict[str, Any]]]], figures: str | None = None) -> str:
+    """The tables of :func:`write_summary`; ``figures``: the runs' folder relative to the page, to show each
+    scenario's budgets.png."""
+    lines = [
+             "Time-averaged MSE over the test episodes (frames 1..n_t-1, physical units of the scored channels); "
+             "per budget m the best filter policy, the mean of the random layouts, SHRED on the QR layout and the "
+             "forward run (no sensors). Paired log ratios, standard errors and every policy's row are in each "
+             "scenario's budgets.md.", ""]
+    for bench, scenarios in runs.items():
+        for scenario, docs in scenarios.items():
+            budgets = sorted(docs)
+            cfg = docs[budgets[0]]["config"]
+            lines += [f"## {bench}, {scenario}", ""]
+            if figures is not None:
+                lines += [f"![{bench}, {scenario}: error vs budget]({figures}/{bench}/{scenario}/budgets.png)", ""]
+            lines += [
+                      f"{cfg['model']} ({cfg['model_preset']}) {cfg['filter']}, noise level {cfg['noise_level']:g}, "
+                      f"{cfg['n_episodes']} episodes, faults: {describe_faults(cfg.get('faults'))}"
+                      + (", constrained candidates" if cfg.get("constrained") else "") + ".", "",
+                      "| m | best filter policy | random mean | SHRED (QR layout) | SHRED / filter on QR | forward run |",
+                      "|---|---|---|---|---|---|"]
+            for m in budgets:
+                recs = _by_policy(docs[m])
+                ranked = sorted((r for n, r in recs.items() if _is_filter_policy(n)),
+                                key=lambda r: r["time_mean_mse_mean"])
+                best = ranked[0] if ranked else None
+                shred, qr = recs.get("shred-qr"), recs.get("qr")
+                ratio = (f"{shred['time_mean_mse_mean'] / qr['time_mean_mse_mean']:.2f}"
+                         if shred and qr else "-")
+                lines.append(f"| {m} | {best['policy'] if best else '-'} {_sci(best and best['time_mean_mse_mean'])} "
+                             f"| {_sci(_random_mean(recs))} | {_sci(shred and shred['time_mean_mse_mean'])} | {ratio} "
+                             f"| {_sci(recs.get('forward', {}).get('time_mean_mse_mean'))} |")
+            lines.append("")
+        if {"none", "default"} <= set(scenarios):
+            lines += [f"### {bench}: what the default faults cost", "",
+                      "Time-averaged MSE with the default faults over the same without, per policy and budget "
+                      "(the same episodes and noise; > 1: the faults cost).", ""]
+            budgets = sorted(set(scenarios["none"]) & set(scenarios["default"]))
+            lines += ["| policy | " + " | ".join(f"m = {m}" for m in budgets) + " |", "|---|" + "---|" * len(budgets)]
+            names = [n for n in _by_policy(scenarios["none"][budgets[0]]) if not n.startswith("random-")]
+            for name in [*names, "random mean"]:
+                cells = []
+                for m in budgets:
+                    a, b = _by_policy(scenarios["default"][m]), _by_policy(scenarios["none"][m])
+                    if name == "random mean":
+                        x, y = _random_mean(a), _random_mean(b)
+                    else:
+                        x = a.get(name, {}).get("time_mean_mse_mean")
+                        y = b.get(name, {}).get("time_mean_mse_mean")
+                    cells.append(f"{x / y:.2f}" if x and y else "-")
+                lines.append(f"| {name} | " + " | ".join(cells) + " |")
+            lines.append("")
+    return "\n".join(lines)
+
+
+def write_summary(folder: str | Path, out: str | Path) -> Path:
+    """Write the page ``out``: ``folder/reading.md`` (if any), then the tables and figures of the runs under
+    ``folder``; returns ``out``."""
+    import os
+
+    folder, out = Path(folder), Path(out)
+    head = ["# Placement benchmark: every benchmark, scenario and budget", "",
+            f"Regenerate this page from the runs with `python -m dks_gym_agents.summary {folder.name} {out.name}` "
+            f"(from {out.parent.name}/); each run's command is in the reading below.", ""]
+    reading = folder / "reading.md"
+    if reading.exists():
+        head += [reading.read_text().strip(), ""]
+    rel = Path(os.path.relpath(folder, out.parent)).as_posix()
+    out.write_text("\n".join(head) + "\n" + summary_table(load_benchmark(folder), figures=rel) + "\n")
+    return out
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        raise SystemExit("usage: python -m dks_gym_agents.summary FOLDER OUT.md")
+    print(write_summary(sys.argv[1], sys.argv[2]))
