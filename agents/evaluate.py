@@ -552,7 +552,7 @@ def evaluate_placement(
             log(f"{'shred-' + name:>14}: skipped ({name!r} is not in this run)")
             skipped[f"shred-{name}"] = f"{name!r} is not in this run"
             continue
-        rec = evaluate_shred(task, pr, seeds, shred_config)
+        rec = evaluate_shred(task, pr, seeds, shred_config, progress=True)
         log(f"{rec['policy']:>14}: fit {rec['fit_seconds']:8.2f} s, time-avg MSE {rec['time_mean_mse_mean']:.3e}, "
             f"final MSE {rec['final_mse_mean']:.3e} (POD floor {rec['pod_floor_time_mean_mse']:.1e})")
         estimators.append(rec)

@@ -348,6 +348,45 @@ def test_late_readings_are_assimilated_at_their_observation_time(models: dict, f
         Assimilation(model, config).start(mixed, seed=0)
 
 
+@pytest.mark.parametrize("filt", ["ekf", "enkf"])
+def test_sensor_bias_estimated_with_the_state(models: dict, filt: str) -> None:
+    """FilterConfig(bias_drift=...) augments the state with one bias per sensor. A bias pinned to 0 (prior
+    1e-6, no drift) gives the plain EKF; with readings shifted by a constant 3 noise sigmas the estimated
+    biases find the shift (EKF and EnKF), and the EKF estimates the field no worse than the plain filter on
+    unshifted readings (better, here: the biases also take up part of the model's own systematic error)."""
+    from dks_gym.assimilation import Assimilation
+    from dks_gym.envs import SensingEnv
+
+    model = models["pdmd"]  # fitted: a model the readings can be told apart from
+
+    def run(config: FilterConfig, offset: float) -> tuple[np.ndarray, Assimilation, float]:
+        env = SensingEnv("burgers", preset="small")
+        env.reset(seed=0, options={"trajectory": 1})
+        core = Assimilation(model, config, uncertainty=False)
+        core.start([env], seed=0)
+        mse = []
+        for _ in range(1, env.dataset.n_frames):
+            obs, _, _, _, info = env.step(None)
+            mse.append(core.step([env], (obs + offset * env.sigma)[None], info["sensors"][None]).mse[0])
+        return np.array(mse), core, env.sigma
+
+    kind = dict(kind=filt, n_members=32, Q="paper", P0="paper")  # Q large enough for the readings to matter
+    plain, _, _ = run(FilterConfig(**kind), 0.0)
+    pinned, core, _ = run(FilterConfig(**kind, bias_drift=0.0, bias_prior=1e-6), 0.0)
+    assert core.bias().shape == (1, 16) and np.abs(core.bias()).max() < 1e-5
+    if filt == "ekf":  # (the EnKF draws its members in r + m dimensions: other draws)
+        np.testing.assert_allclose(pinned, plain, rtol=1e-3)
+    estimated, core, sigma = run(FilterConfig(**kind, bias_drift=0.0, bias_prior=10.0), 3.0)
+    late = slice(len(plain) // 2, None)
+    assert np.all(np.abs(core.bias()[0] / sigma - 3.0) < 0.5)
+    if filt == "ekf":  # the EnKF's sampled bias-state correlations cost it more than the bias (docs/filters.md)
+        assert estimated[late].mean() < 1.2 * plain[late].mean()
+    with pytest.raises(ValueError, match="bias_drift must be"):
+        FilterConfig(bias_drift=-1.0)
+    with pytest.raises(ValueError, match="set bias_drift too"):
+        FilterConfig(bias_prior=1.0)
+
+
 def test_koopman_operator_computed_once_per_episode(models: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     """For a fixed mu the Koopman K(mu) is built at reset and handed to the EKF as a constant tensor."""
     model = models["koopman"]

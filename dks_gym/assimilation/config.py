@@ -18,8 +18,8 @@ import torch
 
 from ..dataset import SPLITS
 from ..envs.faults import SensorFaults
-from ..filters import EKF, EnKF, LatentDynamics
-from ..filters.common import check_covariance_spec
+from ..filters import EKF, EnKF, LatentDynamics, augment_with_bias, augmented_covariance
+from ..filters.common import as_covariance, check_covariance_spec
 from ..filters.enkf import Localization
 from ..names import FILTERS
 
@@ -47,6 +47,10 @@ class FilterConfig:
     ``(C_zy, C_yy) -> (C_zy, C_yy)``, e.g. :func:`~dks_gym.filters.schur_localization`).
     ``on_divergence``: "raise" stops at a non-finite estimate, "reset" restarts the diverged elements.
     ``seed``: seeds the EnKF's draws when the caller gives none.
+    ``bias_drift``: estimate each sensor's bias with the state (:func:`~dks_gym.filters.augment_with_bias`,
+    docs/filters.md): the standard deviation of the bias random walk's step per frame, in the observed
+    channel's units (0: a constant unknown bias); None (default): no bias. ``bias_prior``: the initial bias's
+    standard deviation (default: the env's noise sigma). The bias belongs to a sensor slot of the layout.
     """
 
     kind: str = "ekf"
@@ -58,6 +62,8 @@ class FilterConfig:
     localization: Localization | None = None
     on_divergence: str = "raise"
     seed: int = 0
+    bias_drift: float | None = None
+    bias_prior: float | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in FILTERS:
@@ -88,6 +94,18 @@ class FilterConfig:
             raise ValueError(f"on_divergence must be 'raise' or 'reset', got {self.on_divergence!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral):
             raise ValueError(f"seed must be an integer, got {self.seed!r}")
+        for name, low in (("bias_drift", 0.0), ("bias_prior", None)):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value) \
+                    or (value < 0 if low is not None else value <= 0):
+                bound = ">= 0" if low is not None else "> 0"
+                raise ValueError(f"{name} must be a finite standard deviation {bound} (observed channel's units) "
+                                 f"or None, got {value!r}")
+        if self.bias_prior is not None and self.bias_drift is None:
+            raise ValueError("bias_prior is the initial bias of the estimated sensor biases: set bias_drift too "
+                             "(0.0 for a constant bias)")
 
     @property
     def assimilates(self) -> bool:
@@ -111,14 +129,34 @@ class FilterConfig:
             return _calibrated(model, "P0_exact" if self.initial == "exact" else "P0")
         return self.P0
 
-    def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int, model: Any = None) -> EKF | EnKF:
+    def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int, model: Any = None,
+             n_sensors: int | None = None) -> EKF | EnKF:
         """The filter object (the forward run is the EKF loop stepped with the update off); ``model``
-        resolves ``Q="calibrated"``."""
+        resolves ``Q="calibrated"``. With ``bias_drift`` the state is ``[z; b]`` over ``n_sensors`` biases."""
         Q = self.process_noise(model)  # the filters convert it to the state's dtype and device
+        if self.bias_drift is not None:
+            dynamics = augment_with_bias(dynamics, n_sensors)
+            Q = augmented_covariance(torch.as_tensor(Q) if torch.as_tensor(Q).ndim == 2 else float(Q), model.r,
+                                     n_sensors, float(self.bias_drift) ** 2)
         if self.kind == "enkf":
             return EnKF(dynamics, sigma=sigma, Q=Q, n_members=self.n_members, inflation=self.inflation,
                         localization=self.localization, generator=seed, on_divergence=self.on_divergence)
         return EKF(dynamics, sigma=sigma, Q=Q, on_divergence=self.on_divergence)
+
+
+    def initial_state(self, model: Any, z0: torch.Tensor, sigma: torch.Tensor,
+                      n_sensors: int) -> tuple[torch.Tensor, torch.Tensor | float]:
+        """The filter's start ``(mean, P0)``: ``z0`` and :meth:`initial_covariance`, augmented with zero biases
+        of variance ``bias_prior**2`` (default ``sigma**2`` per element) when ``bias_drift`` is set."""
+        P0 = self.initial_covariance(model)
+        if self.bias_drift is None:
+            return z0, P0
+        batch, r = z0.shape
+        prior = sigma if self.bias_prior is None else torch.full_like(sigma, float(self.bias_prior))
+        P = torch.zeros(batch, r + n_sensors, r + n_sensors, dtype=z0.dtype, device=z0.device)
+        P[:, :r, :r] = as_covariance(P0, batch, r, like=z0, name="P0")
+        P[:, r:, r:] = torch.diag_embed((prior.to(z0) ** 2)[:, None].expand(batch, n_sensors))
+        return torch.cat([z0, z0.new_zeros(batch, n_sensors)], dim=1), P
 
 
 def _calibrated(model: Any, name: str) -> torch.Tensor:
@@ -185,6 +223,7 @@ class AssimilationConfig:
         return {"filter": f.kind, "initial": f.initial, "noise_level": self.noise_level, "n_members": f.n_members,
                 "n_sensors": self.n_sensors, "P0": _plain(f.P0), "Q": _plain(f.Q), "noise_seed": self.noise_seed,
                 "filter_seed": f.seed, "split": self.split, "on_divergence": f.on_divergence,
+                "bias_drift": f.bias_drift, "bias_prior": f.bias_prior,
                 "faults": None if self.faults is None else dataclasses.asdict(self.faults)}
 
 

@@ -167,13 +167,16 @@ class Assimilation:
         self._sensors.current = np.stack([e.sensors for e in envs]) if sensors is None else np.asarray(sensors)
         # A noise-free env (noise_level=0) still needs a positive R for the gain to exist.
         sigma = torch.tensor([max(e.sigma, 1e-12) for e in envs], dtype=self.dtype, device=self.device)
-        self._filter = self.config.make(self._dynamics(envs[0].benchmark.observed_channel), sigma, seed, self.model)
+        n_sensors = self._sensors.current.shape[1]
+        self._filter = self.config.make(self._dynamics(envs[0].benchmark.observed_channel), sigma, seed, self.model,
+                                        n_sensors)
         if self.config.initial == "exact":
             with torch.no_grad():
                 z0 = self.model.encode(self._truth(envs), self._mu)
         else:
             z0 = approximate_initial_latent(self.model, envs[0].dataset).expand(len(envs), -1)
-        self._filter.reset(z0.to(self.device, self.dtype).clone(), self.config.initial_covariance(self.model))
+        self._filter.reset(*self.config.initial_state(self.model, z0.to(self.device, self.dtype).clone(), sigma,
+                                                      n_sensors))
         self._lag, self._k, self._now = _latency(envs), 0, self._filter
         return self._snapshot(envs)
 
@@ -205,14 +208,14 @@ class Assimilation:
     def _snapshot(self, envs: Sequence[SensingEnv], with_diagnostics: bool = False,
                   stepped: bool = True) -> Snapshot:
         with torch.no_grad():
-            estimate = self.model.decode(self._now.mean.detach(), self._mu)
+            estimate = self.model.decode(self._latent_mean(), self._mu)
         truth = self._truth(envs).to(estimate)
         bench = envs[0].benchmark
         std = torch.as_tensor(envs[0].dataset.stats_std, device=estimate.device)
         snap = Snapshot(estimate=estimate,
                         mse=field_errors(estimate, truth, bench.scored_indices).cpu().numpy(),
                         normalized_mse=field_errors(estimate, truth, bench.scored_indices, std).cpu().numpy(),
-                        latent_mean=self._now.mean.detach().cpu().numpy())
+                        latent_mean=self._latent_mean().cpu().numpy())
         if self.uncertainty:
             snap.estimate_std = self.predictive_std(estimate)
             scores = gaussian_scores(estimate, snap.estimate_std, truth, bench.scored_indices,
@@ -240,12 +243,13 @@ class Assimilation:
         if self._now is None:
             raise RuntimeError("call start() before predictive_std()")
         with torch.no_grad():
+            r = self.model.r  # the model's part of the state (the rest: estimated sensor biases)
             if estimate is None:
-                estimate = self.model.decode(self._now.mean.detach(), self._mu)
+                estimate = self.model.decode(self._latent_mean(), self._mu)
             if isinstance(self._now, EnKF):
-                var = ensemble_variance(self.model, self._now.ensemble, self._mu, center=estimate)
+                var = ensemble_variance(self.model, self._now.ensemble[..., :r], self._mu, center=estimate)
             else:
-                var = jacobian_variance(self.model, self._now.mean, self._mu, self._now.cov)
+                var = jacobian_variance(self.model, self._now.mean[:, :r], self._mu, self._now.cov[:, :r, :r])
             var = var.reshape(estimate.shape)
             if self.reconstruction_var is not None:
                 var = var + self.reconstruction_var.to(var)
@@ -257,8 +261,19 @@ class Assimilation:
 
     def belief(self) -> np.ndarray:
         """[mean z; log diag P] per element, (B, 2r) float32."""
-        var = self._now.cov.diagonal(dim1=-2, dim2=-1).clamp_min(1e-30)
-        return torch.cat([self._now.mean, var.log()], dim=1).detach().cpu().numpy().astype(np.float32)
+        r = self.model.r
+        var = self._now.cov[:, :r, :r].diagonal(dim1=-2, dim2=-1).clamp_min(1e-30)
+        return torch.cat([self._latent_mean(), var.log()], dim=1).cpu().numpy().astype(np.float32)
+
+    def _latent_mean(self) -> torch.Tensor:
+        """The model's part of the current mean (B, r), without the estimated sensor biases."""
+        return self._now.mean[:, : self.model.r].detach()
+
+    def bias(self) -> np.ndarray | None:
+        """The estimated sensor biases (B, m) with ``FilterConfig(bias_drift=...)``, else None."""
+        if self.config.bias_drift is None or self._now is None:
+            return None
+        return self._now.mean[:, self.model.r:].detach().cpu().numpy()
 
     def history(self) -> dict[str, np.ndarray | None]:
         """Over the steps so far: ``forecast_norm`` (n, B) (None for the EnKF), ``step_seconds`` (n,), and
