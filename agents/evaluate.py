@@ -28,6 +28,7 @@ which works on any results document, e.g. a committed ``placement.json``).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import platform
@@ -575,13 +576,17 @@ def evaluate_budgets(benchmark: str, policies: Sequence[str | PlacementPolicy] |
     and ``out/budgets.png``: per policy and budget the time-averaged MSE and its paired log ratio to the random
     layouts of the same episodes, with the standard error over trajectories (the error-vs-budget curves with
     paired confidence bands). ``options`` go to :func:`evaluate_placement` (``faults``, ``model``, ...).
-    Policy objects are used at the first budget only (a fitted layout has its own m); give names.
+    Your own policy objects rank beside the named ones: each budget fits a fresh copy of an unfitted one (a
+    fitted policy holds one budget's layout and is refused with several budgets).
     """
     budgets = sorted({int(m) for m in budgets})
     if not budgets or budgets[0] < 1:
         raise ValueError(f"budgets must be positive sensor counts, got {budgets!r}")
-    if not isinstance(policies, str) and any(isinstance(p, PlacementPolicy) for p in policies) and len(budgets) > 1:
-        raise ValueError("policy objects hold one budget's layout; pass policy names to compare budgets")
+    if isinstance(policies, str):
+        policies = [n.strip() for n in policies.split(",") if n.strip()]
+    if len(budgets) > 1 and any(isinstance(p, PlacementPolicy) and p.task is not None for p in policies):
+        raise ValueError("a fitted policy object holds one budget's layout; pass it unfitted (each budget fits a "
+                         "copy) or by name to compare budgets")
     out = Path(out)
     docs = {}
     task = options.pop("task", None)
@@ -589,7 +594,8 @@ def evaluate_budgets(benchmark: str, policies: Sequence[str | PlacementPolicy] |
         log(f"budget m = {m}")
         if task is not None:  # a given task holds its own sensor count
             options["task"] = dataclasses.replace(task, config=task.config.replace(n_sensors=m))
-        docs[m], _ = evaluate_placement(benchmark, policies, n_sensors=m, out=out / f"m{m}", log=log,
+        fresh = [copy.deepcopy(p) if isinstance(p, PlacementPolicy) else p for p in policies]
+        docs[m], _ = evaluate_placement(benchmark, fresh, n_sensors=m, out=out / f"m{m}", log=log,
                                         skip_unfit=True, **options)
     (out / "budgets.md").write_text(budget_table(docs))
     budget_figure(docs, out / "budgets.png")

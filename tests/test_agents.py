@@ -681,3 +681,25 @@ def test_shred_ranks_beside_the_filters(burgers_task: PlacementTask, tmp_path: P
     assert "| shred-paper |" in (tmp_path / "m4" / "placement.md").read_text().replace(" (adaptive)", "")
     assert "| shred-paper |" in (tmp_path / "budgets.md").read_text()
     assert docs[4]["config"]["skipped_policies"] == {"shred-qr": "'qr' is not in this run"}
+
+
+def test_your_own_policy_ranks_at_every_budget(burgers_task: PlacementTask, tmp_path: Path) -> None:
+    """An unfitted policy object is fitted afresh at each budget (a copy); a fitted one is refused."""
+    from dks_gym_agents import StaticPolicy
+    from dks_gym_agents.evaluate import evaluate_budgets
+
+    class Leftmost(StaticPolicy):
+        name = "leftmost"
+
+        def choose(self, task):
+            return task.allowed_cells[: task.n_sensors]
+
+    mine = Leftmost()
+    docs = evaluate_budgets("burgers", ["paper", mine], [2, 3], task=burgers_task, out=tmp_path, log=lambda _: None)
+    for m in (2, 3):
+        rec = next(r for r in docs[m]["records"] if r["policy"] == "leftmost")
+        assert rec["sensors"] == burgers_task.allowed_cells[:m].tolist()
+    assert mine.task is None  # the caller's object is left as it was
+    mine.fit(burgers_task)
+    with pytest.raises(ValueError, match="fitted policy object"):
+        evaluate_budgets("burgers", [mine], [2, 3], task=burgers_task, out=tmp_path, log=lambda _: None)
