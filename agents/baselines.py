@@ -38,10 +38,10 @@ from dks_gym.dataset import Dataset
 
 from .policies import PlacementTask, StaticPolicy, candidate_lattice
 from .scoring import (
-    LinearizedTrajectories,
     covariance_traces,
     episode_information,
     information_logdets,
+    linearized,
     run_layouts,
 )
 
@@ -324,7 +324,7 @@ class GreedyLayout(StaticPolicy):
         return score
 
     def _trace_scorer(self, task: PlacementTask, cands: np.ndarray, trajectories: np.ndarray):
-        lin = LinearizedTrajectories(task.model, task.dataset, trajectories, cands, task.config)
+        lin = linearized(task.model, task.dataset, trajectories, cands, task.config)
         per_call = max(1, (4 * self.max_batch) // len(trajectories))
 
         def score(layouts: np.ndarray) -> np.ndarray:
@@ -334,7 +334,7 @@ class GreedyLayout(StaticPolicy):
         return score
 
     def _information_scorer(self, task: PlacementTask, cands: np.ndarray, trajectories: np.ndarray):
-        lin = LinearizedTrajectories(task.model, task.dataset, trajectories, cands, task.config)
+        lin = linearized(task.model, task.dataset, trajectories, cands, task.config)
         information = episode_information(lin)
         r = information.shape[-1]
         P0 = torch.as_tensor(task.config.filter.initial_covariance(task.model), dtype=information.dtype)

@@ -155,6 +155,23 @@ class LinearizedTrajectories:
         self.sigma = torch.tensor(sigma, dtype=dtype, device=device)  # (T,)
 
 
+_LAST_LINEARIZED: list[tuple[tuple, LinearizedTrajectories]] = []  # one slot: a budget sweep reuses its lattice
+
+
+def linearized(model: Any, dataset: Dataset, trajectories: np.ndarray, cells: np.ndarray,
+               config: AssimilationConfig) -> LinearizedTrajectories:
+    """:class:`LinearizedTrajectories` of these arguments, the last one built reused when they match (the
+    greedy policies of a budget sweep or of several fault scenarios share one candidate lattice; only the
+    config's noise level enters)."""
+    key = (model, str(dataset.path), np.asarray(trajectories).tobytes(), np.unique(cells).tobytes(),
+           float(config.noise_level))
+    if _LAST_LINEARIZED and _LAST_LINEARIZED[0][0][0] is model and _LAST_LINEARIZED[0][0][1:] == key[1:]:
+        return _LAST_LINEARIZED[0][1]
+    lin = LinearizedTrajectories(model, dataset, trajectories, cells, config)
+    _LAST_LINEARIZED[:] = [(key, lin)]
+    return lin
+
+
 def covariance_traces(lin: LinearizedTrajectories, layouts: np.ndarray, config: AssimilationConfig,
                       space: str = "field") -> np.ndarray:
     """Trace of the EKF analysis covariance linearized along the encoded truth, (L, T, n_t - 1).
