@@ -703,3 +703,18 @@ def test_your_own_policy_ranks_at_every_budget(burgers_task: PlacementTask, tmp_
     mine.fit(burgers_task)
     with pytest.raises(ValueError, match="fitted policy object"):
         evaluate_budgets("burgers", [mine], [2, 3], task=burgers_task, out=tmp_path, log=lambda _: None)
+
+
+def test_the_linearization_is_reused_only_for_the_same_inputs(burgers_task: PlacementTask) -> None:
+    from dks_gym_agents.scoring import LinearizedTrajectories, linearized
+
+    ds, model, config = burgers_task.dataset, burgers_task.model, burgers_task.config
+    cells = np.arange(0, 64, 8)
+    first = linearized(model, ds, np.array([0, 1]), cells, config)
+    assert linearized(model, ds, np.array([0, 1]), cells, config.replace(n_sensors=3)) is first
+    noisier = linearized(model, ds, np.array([0, 1]), cells, config.replace(noise_level=0.3))
+    assert noisier is not first and not torch.equal(noisier.sigma, first.sigma)
+    assert linearized(model, ds, np.array([0]), cells, config) is not first
+    fresh = LinearizedTrajectories(model, ds, np.array([0, 1]), cells, config)
+    again = linearized(model, ds, np.array([0, 1]), cells, config)
+    assert torch.equal(again.J, fresh.J) and torch.equal(again.F, fresh.F)
