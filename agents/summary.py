@@ -34,7 +34,9 @@ def load_benchmark(folder: str | Path) -> dict[str, dict[str, dict[int, dict[str
         out.setdefault(path.parents[2].name, {}).setdefault(path.parents[1].name, {})[m] = load_results(path)
     if not out:
         raise FileNotFoundError(f"no <benchmark>/<scenario>/m<m>/placement.json under {folder}")
-    return out
+    # "none" (no faults, every allowed cell) first: the reference the other scenarios are read against
+    return {bench: dict(sorted(scenarios.items(), key=lambda item: (item[0] != "none", item[0])))
+            for bench, scenarios in out.items()}
 
 
 def _by_policy(doc: dict[str, Any]) -> dict[str, dict[str, Any]]:
@@ -110,10 +112,10 @@ def write_summary(folder: str | Path, out: str | Path) -> Path:
     ``folder``; returns ``out``."""
     import os
 
-    folder, out = Path(folder), Path(out)
     head = ["# Placement benchmark: every benchmark, scenario and budget", "",
-            f"Regenerate this page from the runs with `python -m dks_gym_agents.summary {folder.name} {out.name}` "
-            f"(from {out.parent.name}/); each run's command is in the reading below.", ""]
+            f"Regenerate this page from the runs with `python -m dks_gym_agents.summary {folder} {out}`; each "
+            "run's command is in the reading below.", ""]
+    folder, out = Path(folder), Path(out)
     reading = folder / "reading.md"
     if reading.exists():
         head += [reading.read_text().strip(), ""]
