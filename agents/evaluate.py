@@ -39,11 +39,12 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+import torch
 
-from dks_gym.assimilation import AssimilationResult
+from dks_gym.assimilation import AssimilationResult, field_errors
 from dks_gym.envs import SensorFaults
 from dks_gym.evaluation.results import UNCERTAINTY_SCORES, make_record, new_results, save_results
-from dks_gym.models.shred import Shred, ShredConfig, read_episodes, scored_mse
+from dks_gym.models.shred import Shred, ShredConfig, read_episodes
 
 from .adaptive import PPOAdaptive
 from .baselines import GREEDY_OBJECTIVES, GreedyLayout, PaperLayout, QRLayout, RandomLayout
@@ -146,6 +147,13 @@ def evaluate_policy(task: PlacementTask, policy: PlacementPolicy, trajectories: 
     return PolicyResult(policy, result, layouts, per_decision)
 
 
+def frame_errors(estimate: np.ndarray, truth: np.ndarray, scored: Sequence[int]) -> np.ndarray:
+    """Eq. 18 (:func:`~dks_gym.assimilation.field_errors`) at every frame of episodes of fields
+    (E, n_t, C, *grid): (E, n_t), float64."""
+    flat = [torch.as_tensor(np.asarray(x, dtype=np.float64).reshape(-1, *x.shape[2:])) for x in (estimate, truth)]
+    return field_errors(*flat, tuple(scored)).numpy().reshape(estimate.shape[:2])
+
+
 def evaluate_shred(task: PlacementTask, pr: PolicyResult, noise_seeds: Sequence[int],
                    config: ShredConfig = ShredConfig(), progress: bool = False) -> dict[str, Any]:
     """SHRED (:mod:`dks_gym.models.shred`) trained on the training split with the layout of a static policy's
@@ -164,8 +172,8 @@ def evaluate_shred(task: PlacementTask, pr: PolicyResult, noise_seeds: Sequence[
     estimate = shred.reconstruct(readings, ds.params(cfg.split)[index])
     seconds = time.perf_counter() - tic
     truth = np.stack([ds.trajectory(cfg.split, int(t)) for t in index])
-    step = scored_mse(estimate, truth, task.benchmark.scored_indices)
-    floor = shred.pod_floor(truth)[:, 1:].mean()
+    step = frame_errors(estimate, truth, task.benchmark.scored_indices)
+    floor = frame_errors(shred.project(truth), truth, task.benchmark.scored_indices)[:, 1:].mean()
     final, tm = step[:, -1], step[:, 1:].mean(axis=1)
     rec: dict[str, Any] = {
         "experiment": f"placement/shred-{pr.name}", "model": "shred", "filter": "none", "initial": "approximate",
@@ -212,8 +220,6 @@ def _record(pr: PolicyResult, task: PlacementTask) -> dict[str, Any]:
 def placement_document(task: PlacementTask, results: Sequence[PolicyResult], forward: AssimilationResult | None,
                        *, model_preset: str, wall_time: float) -> dict[str, Any]:
     """The results document (``dks-gym-results`` schema) of one harness run."""
-    import torch
-
     from dks_gym.version import __version__
     from dks_gym.models.checkpoint import dataset_identity
 

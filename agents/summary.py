@@ -19,11 +19,7 @@ import numpy as np
 
 from dks_gym.evaluation.results import load_results
 
-from .evaluate import describe_faults
-
-
-def _sci(x: float | None) -> str:
-    return "-" if x is None or not np.isfinite(x) else f"{x:.2e}"
+from .evaluate import _sci, describe_faults
 
 
 def load_benchmark(folder: str | Path) -> dict[str, dict[str, dict[int, dict[str, Any]]]]:

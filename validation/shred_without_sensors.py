@@ -22,7 +22,8 @@ import numpy as np
 from dks_gym.atomic import atomic_path
 from dks_gym.dataset import Dataset
 from dks_gym.home import dataset_path
-from dks_gym.models.shred import Shred, read_episodes, scored_mse
+from dks_gym.models.shred import Shred, read_episodes
+from dks_gym_agents.evaluate import frame_errors
 
 
 def study(benchmark: str, m: int) -> dict:
@@ -35,7 +36,7 @@ def study(benchmark: str, m: int) -> dict:
         shred = Shred(ds, layout, noise_level=0.2, faults=faults).fit(progress=True)
         readings = read_episodes(ds, layout, np.arange(n), np.zeros(n, dtype=int), split="test", noise_level=0.2,
                                  faults=faults)
-        mse = scored_mse(shred.reconstruct(readings, ds.params("test")), truth, ds.benchmark.scored_indices)
+        mse = frame_errors(shred.reconstruct(readings, ds.params("test")), truth, ds.benchmark.scored_indices)
         out[name] = {"time_mean_mse": float(mse[:, 1:].mean()), "final_mse": float(mse[:, -1].mean()),
                      "fit_seconds": shred.fit_seconds, "epochs": shred.epochs_run}
         print(benchmark, name, out[name], flush=True)

@@ -136,13 +136,11 @@ class FilterConfig:
         Q = self.process_noise(model)  # the filters convert it to the state's dtype and device
         if self.bias_drift is not None:
             dynamics = augment_with_bias(dynamics, n_sensors)
-            Q = augmented_covariance(torch.as_tensor(Q) if torch.as_tensor(Q).ndim == 2 else float(Q), model.r,
-                                     n_sensors, float(self.bias_drift) ** 2)
+            Q = augmented_covariance(Q, model.r, n_sensors, float(self.bias_drift) ** 2)
         if self.kind == "enkf":
             return EnKF(dynamics, sigma=sigma, Q=Q, n_members=self.n_members, inflation=self.inflation,
                         localization=self.localization, generator=seed, on_divergence=self.on_divergence)
         return EKF(dynamics, sigma=sigma, Q=Q, on_divergence=self.on_divergence)
-
 
     def initial_state(self, model: Any, z0: torch.Tensor, sigma: torch.Tensor,
                       n_sensors: int) -> tuple[torch.Tensor, torch.Tensor | float]:

@@ -10,8 +10,8 @@ beside dks-gym would downgrade numpy to 1.26.4 (dks-gym runs on numpy 2) and pul
 scs (``pip install --dry-run pyshred``). As published: an LSTM of 2 layers of 64 units over the last ``lags`` frames of readings, whose
 last hidden state goes through a shallow decoder of 350 and 400 ReLU units with dropout 0.1. As in
 pyshred's compressed mode (and SHRED-ROM), the decoder outputs the leading ``rank`` POD coefficients of the
-standardized training fields, so the output layer does not scale with the grid; :attr:`Shred.pod_floor`
-measures what that costs.
+standardized training fields, so the output layer does not scale with the grid; :meth:`Shred.project`
+gives the projection whose error bounds it.
 
 Inputs per frame: the m readings standardized per sensor (0 where missing), the m presence flags, the
 standardized parameter mu and the time since the episode began: the information the filters have (they know
@@ -103,6 +103,7 @@ class Shred:
         self.network: ShredNetwork | None = None
         self.fit_seconds = float("nan")
         self.epochs_run = 0
+        self.validation_loss: float | None = None
 
     def _inputs(self, readings: np.ndarray, mu: np.ndarray) -> torch.Tensor:
         """(E, n_t, 2m + 2): standardized readings (0 where missing), presence flags, standardized mu, and the
@@ -159,13 +160,12 @@ class Shred:
         noise = np.repeat(np.asarray(list(seeds)) + 1_000_003, n_train)  # training noise, not the test seeds'
         readings = read_episodes(ds, self.layout, trajectories, noise, split="train",
                                  noise_level=self.noise_level, faults=self.faults)
-        finite = np.where(np.isfinite(readings), readings, np.nan)
-        self._reading_mean = np.nan_to_num(np.nanmean(finite, axis=(0, 1)))
-        self._reading_std = np.nan_to_num(np.nanstd(finite, axis=(0, 1)), nan=1.0) + 1e-12
+        self._reading_mean = np.nan_to_num(np.nanmean(readings, axis=(0, 1)))  # a missing reading is NaN
+        self._reading_std = np.nan_to_num(np.nanstd(readings, axis=(0, 1)), nan=1.0) + 1e-12
         mu = ds.params("train")[trajectories]
         self._mu_mean, self._mu_std = float(mu.mean()), float(mu.std()) + 1e-12
         frames = np.arange(1, ds.n_frames)
-        inputs = self._windows(self._inputs(readings, mu), frames)  # (E * (n_t - 1), lags, 2m + 1)
+        inputs = self._windows(self._inputs(readings, mu), frames)  # (E * (n_t - 1), lags, 2m + 2)
         targets = coefficients[torch.as_tensor(trajectories)][:, 1:].reshape(-1, rank)
 
         held = rng.permutation(n_train)[: max(1, n_train // 10)]
@@ -227,23 +227,16 @@ class Shred:
         out[:, 1:] = self._fields(coefficients).reshape(episodes, n_t - 1, *self._field_shape)
         return out
 
-    def pod_floor(self, fields: np.ndarray) -> np.ndarray:
-        """Per frame, the MSE over the scored channels of the rank-``rank`` POD projection of ``fields``
-        (E, n_t, C, *grid): no SHRED can do better. (E, n_t)."""
-        shape = fields.shape
+    def project(self, fields: np.ndarray) -> np.ndarray:
+        """The rank-``rank`` POD projection of ``fields`` (E, n_t, C, *grid), the best this SHRED can output:
+        its error is SHRED's floor."""
         X = self._standardized(fields.reshape(-1, *self._field_shape))
-        projected = self._fields(X @ self._modes).reshape(shape)
-        return scored_mse(projected, fields, self.dataset.benchmark.scored_indices)
+        return self._fields(X @ self._modes).reshape(fields.shape)
 
     def describe(self) -> dict[str, Any]:
         """The settings and the training outcome, for a results record."""
         return {"name": "shred", **asdict(self.config), "layout": [int(c) for c in self.layout],
                 "epochs_run": self.epochs_run, "fit_seconds": self.fit_seconds,
-                "validation_loss": getattr(self, "validation_loss", None),
+                "validation_loss": self.validation_loss,
                 "faults": None if self.faults is None else asdict(self.faults)}
 
-
-def scored_mse(estimate: np.ndarray, truth: np.ndarray, scored: Sequence[int]) -> np.ndarray:
-    """Eq. 18 per frame: MSE over the scored channels and all cells, (E, n_t) from (E, n_t, C, *grid)."""
-    diff = np.asarray(estimate, dtype=np.float64)[:, :, list(scored)] - np.asarray(truth, dtype=np.float64)[:, :, list(scored)]
-    return (diff.reshape(*diff.shape[:2], -1) ** 2).mean(axis=2)
