@@ -64,7 +64,8 @@ def make_adaptive_env(task: PlacementTask, candidates: np.ndarray, *, n_envs: in
     return VecMonitor(DistinctScaled(env))
 
 
-def train_adaptive(task: PlacementTask, *, timesteps: int = 20480, n_envs: int = 8, n_candidates: int = 32,
+def train_adaptive(task: PlacementTask, *, timesteps: int = 20480, n_envs: int = 8,
+                   n_candidates: int | None = None,
                    candidates: np.ndarray | None = None, seed: int = 0, out: str | Path | None = None,
                    ppo_kwargs: dict[str, Any] | None = None, progress: bool = False) -> tuple[Any, dict[str, Any]]:
     """Train PPO for adaptive sensing; returns (agent, metadata with the learning curve and costs).
@@ -107,7 +108,7 @@ class PPOAdaptive(AdaptivePolicy):
     name = "ppo"
 
     def __init__(self, checkpoint: str | Path | None = None, *, timesteps: int = 20480, n_envs: int = 8,
-                 n_candidates: int = 32, seed: int = 0, out: str | Path | None = None, agent: Any = None,
+                 n_candidates: int | None = None, seed: int = 0, out: str | Path | None = None, agent: Any = None,
                  candidates: np.ndarray | None = None) -> None:
         super().__init__(candidates)
         self.checkpoint = checkpoint

@@ -274,20 +274,21 @@ class GreedyLayout(StaticPolicy):
     ``objective="information"`` (the "d-optimal" policy): minus the mean log det of the information the
     episode's readings give about the initial latent state, prior P0^{-1}
     (:func:`~dks_gym_agents.scoring.episode_information`); monotone and submodular in the layout, so the greedy
-    layout is within (1 - 1/e) of the best one's gain over the prior. Candidates: ``candidates`` or a lattice of about ``n_candidates`` allowed cells; trajectories:
-    ``n_trajectories`` spread over the training parameters. ``history`` holds the best objective after
+    layout is within (1 - 1/e) of the best one's gain over the prior. Candidates: ``candidates`` or
+    :func:`~dks_gym_agents.policies.candidate_lattice` of ``n_candidates`` (default max(32, 2m)) allowed
+    cells; trajectories: ``n_trajectories`` spread over the training parameters. ``history`` holds the best objective after
     each round, ``scores`` every candidate's score per round. ``max_batch`` caps the (layout, trajectory)
     pairs filtered at once.
     """
 
-    def __init__(self, objective: str = "error", n_candidates: int = 32, n_trajectories: int | None = None,
+    def __init__(self, objective: str = "error", n_candidates: int | None = None, n_trajectories: int | None = None,
                  candidates: np.ndarray | None = None, max_batch: int = 256) -> None:
         super().__init__()
         if objective not in GREEDY_OBJECTIVES:
             raise ValueError(f"objective must be one of {', '.join(GREEDY_OBJECTIVES)}, got {objective!r}")
         self.objective = objective
         self.name = GREEDY_OBJECTIVES[objective]
-        self.n_candidates = int(n_candidates)
+        self.n_candidates = None if n_candidates is None else int(n_candidates)
         self.n_trajectories = n_trajectories if n_trajectories is not None else (4 if objective == "error" else 10)
         self.candidates = None if candidates is None else np.asarray(candidates, dtype=np.int64)
         self.max_batch = int(max_batch)
@@ -346,7 +347,9 @@ class GreedyLayout(StaticPolicy):
         return score
 
     def describe(self) -> dict[str, Any]:
-        out = dict(super().describe(), objective=self.objective, n_candidates=self.n_candidates,
+        used = getattr(self, "used_candidates", None)
+        out = dict(super().describe(), objective=self.objective,
+                   n_candidates=self.n_candidates if used is None else len(used),
                    n_trajectories=self.n_trajectories, history=self.history)
         if getattr(self, "used_trajectories", None) is not None:
             out["trajectories"] = self.used_trajectories.tolist()

@@ -38,14 +38,17 @@ from .evaluate import POLICIES
 @click.option("--budgets", default=None,
               help="Comma-separated sensor counts, e.g. 2,4,8,16,32: one run per budget under OUT/m<m>, then "
                    "OUT/budgets.md and OUT/budgets.png (error vs budget); replaces --n-sensors.")
+@click.option("--resume", is_flag=True,
+              help="With --budgets: keep the budgets an earlier run with the same settings finished in OUT and run "
+                   "the others (an interrupted sweep goes on; new budgets join the table).")
 @click.option("--shred", default="",
               help="Comma-separated static policies of the run (e.g. qr) whose layout a SHRED baseline (a shallow "
                    "recurrent decoder from the readings to the field, no filter) is trained on and scored with: "
                    "a shred-<policy> row per policy.")
 @click.option("--random-seeds", type=click.IntRange(min=1), default=5, show_default=True,
               help="How many seeded random layouts 'random' evaluates.")
-@click.option("--greedy-candidates", type=click.IntRange(min=1), default=32, show_default=True,
-              help="Size of the candidate lattice of the greedy policies.")
+@click.option("--greedy-candidates", type=click.IntRange(min=1), default=None,
+              help="Size of the candidate lattice of the greedy policies (default: 32, or 2m when that is more).")
 @click.option("--greedy-trajectories", type=click.IntRange(min=1), default=None,
               help="Training trajectories the greedy objective averages over (default: 4 for 'greedy', 10 for "
                    "'greedy-trace' and 'd-optimal').")
@@ -62,8 +65,8 @@ from .evaluate import POLICIES
 def evaluate_placement_command(benchmark: str, policies: str, model: str, filter_: str, preset: str,
                                data_preset: str, n_sensors: int, noise_level: float, noise_seed: int,
                                noise_seeds: int, faults: str, constraint: str, budgets: str | None,
-                               shred: str, random_seeds: int,
-                               greedy_candidates: int,
+                               resume: bool, shred: str, random_seeds: int,
+                               greedy_candidates: int | None,
                                greedy_trajectories: int | None,
                                sequential_ckpt: Path | None, ppo_ckpt: Path | None, agent_timesteps: int | None,
                                device: str, train_if_missing: bool, out: Path) -> None:
@@ -92,7 +95,10 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
                        agent_timesteps=agent_timesteps, device=device, train_if_missing=train_if_missing,
                        log=click.echo)
         if budgets is not None:
-            evaluate_budgets(benchmark.lower(), policies, parse_budgets(budgets), out=out, **options)
+            evaluate_budgets(benchmark.lower(), policies, parse_budgets(budgets), out=out, resume=resume,
+                             **options)
+        elif resume:
+            raise ValueError("--resume keeps the finished budgets of a --budgets sweep; give --budgets")
         else:
             evaluate_placement(benchmark.lower(), policies, n_sensors=n_sensors, out=out, **options)
     except (CheckpointMissing, DatasetMissing, SchemaError, ResultsError, FilterDivergence, FileNotFoundError,

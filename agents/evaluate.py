@@ -43,7 +43,7 @@ import torch
 
 from dks_gym.assimilation import AssimilationResult, field_errors
 from dks_gym.envs import SensorFaults
-from dks_gym.evaluation.results import UNCERTAINTY_SCORES, make_record, new_results, save_results
+from dks_gym.evaluation.results import UNCERTAINTY_SCORES, load_results, make_record, new_results, save_results
 from dks_gym.models.shred import Shred, ShredConfig, read_episodes
 
 from .adaptive import PPOAdaptive
@@ -58,7 +58,8 @@ POLICIES = ("paper", "random", "qr", "greedy", "greedy-trace", "d-optimal", "seq
 DEFAULT_FAULTS = SensorFaults(dropout=0.1, failure_rate=0.005)
 
 
-def make_policies(names: Sequence[str | PlacementPolicy] | str, *, random_seeds: int = 5, greedy_candidates: int = 32,
+def make_policies(names: Sequence[str | PlacementPolicy] | str, *, random_seeds: int = 5,
+                  greedy_candidates: int | None = None,
                   greedy_trajectories: int | None = None, sequential: str | Path | None = None,
                   ppo: str | Path | None = None, agent_timesteps: int | None = None,
                   agent_out: str | Path | None = None) -> list[PlacementPolicy]:
@@ -310,8 +311,6 @@ def add_paired_vs_random(doc: dict[str, Any]) -> dict[str, Any]:
 def rewrite_tables(folder: str | Path) -> Path:
     """Recompute ``paired_vs_random`` and ``placement.md`` of a finished run from its ``placement.json``
     (no filter runs): ``python -c "from dks_gym_agents.evaluate import rewrite_tables; rewrite_tables('DIR')"``."""
-    from dks_gym.evaluation.results import load_results
-
     folder = Path(folder)
     doc = add_paired_vs_random(load_results(folder / "placement.json"))
     save_results(doc, folder / "placement.json")
@@ -483,7 +482,7 @@ def evaluate_placement(
     faults: SensorFaults | dict[str, Any] | str | None = None,
     constraint: str | np.ndarray | None = None,
     random_seeds: int = 5,
-    greedy_candidates: int = 32,
+    greedy_candidates: int | None = None,
     greedy_trajectories: int | None = None,
     sequential: str | Path | None = None,
     ppo: str | Path | None = None,
@@ -577,13 +576,17 @@ def evaluate_placement(
 
 
 def evaluate_budgets(benchmark: str, policies: Sequence[str | PlacementPolicy] | str, budgets: Sequence[int], *,
-                     out: str | Path, log: Callable[[str], None] = print, **options: Any) -> dict[int, dict[str, Any]]:
+                     out: str | Path, resume: bool = False, log: Callable[[str], None] = print,
+                     **options: Any) -> dict[int, dict[str, Any]]:
     """:func:`evaluate_placement` at each sensor budget m in ``budgets`` (``out/m{m}``), then ``out/budgets.md``
     and ``out/budgets.png``: per policy and budget the time-averaged MSE and its paired log ratio to the random
     layouts of the same episodes, with the standard error over trajectories (the error-vs-budget curves with
     paired confidence bands). ``options`` go to :func:`evaluate_placement` (``faults``, ``model``, ...).
     Your own policy objects rank beside the named ones: each budget fits a fresh copy of an unfitted one (a
     fitted policy holds one budget's layout and is refused with several budgets).
+    ``resume``: keep the budgets an earlier call with the same settings wrote to ``out`` (each budget's
+    ``placement.json`` is written when that budget is done) instead of rerunning them, and show every budget
+    in ``out`` in the table and figure: an interrupted sweep goes on where it stopped, a later call adds budgets.
     """
     budgets = sorted({int(m) for m in budgets})
     if not budgets or budgets[0] < 1:
@@ -594,18 +597,81 @@ def evaluate_budgets(benchmark: str, policies: Sequence[str | PlacementPolicy] |
         raise ValueError("a fitted policy object holds one budget's layout; pass it unfitted (each budget fits a "
                          "copy) or by name to compare budgets")
     out = Path(out)
+    kept = finished_budgets(out, benchmark, options) if resume else {}
     docs = {}
     task = options.pop("task", None)
     for m in budgets:
+        if m in kept:
+            log(f"budget m = {m}: kept {out / f'm{m}' / 'placement.json'}")
+            continue
         log(f"budget m = {m}")
         if task is not None:  # a given task holds its own sensor count
             options["task"] = dataclasses.replace(task, config=task.config.replace(n_sensors=m))
         fresh = [copy.deepcopy(p) if isinstance(p, PlacementPolicy) else p for p in policies]
         docs[m], _ = evaluate_placement(benchmark, fresh, n_sensors=m, out=out / f"m{m}", log=log,
                                         skip_unfit=True, **options)
+    docs = dict(sorted({**kept, **docs}.items()))
+    if kept:
+        same_settings(docs, out)
     (out / "budgets.md").write_text(budget_table(docs))
     budget_figure(docs, out / "budgets.png")
     log(f"wrote {out / 'budgets.md'}, {out / 'budgets.png'}")
+    return docs
+
+
+#: Config entries that may differ between the budgets of one sweep (the budget itself, when and how it ran).
+_PER_RUN = ("n_sensors", "policies", "skipped_policies", "created", "wall_time_s", "dks_gym_version",
+            "torch_version", "python")
+
+
+def _policy_names(doc: dict[str, Any]) -> set[str]:
+    """The policies a run was asked for: those it ran, the SHRED rows and those it skipped."""
+    cfg = doc["config"]
+    return (set(cfg["policies"]) | set(cfg.get("skipped_policies", {}))
+            | {r["policy"] for r in doc["records"] if str(r.get("policy", "")).startswith("shred-")})
+
+
+def same_settings(docs: dict[int, dict[str, Any]], out: Path) -> None:
+    """Refuse budgets of ``out`` that were made with other settings than the first one (all but the budget)."""
+    first_m = min(docs)
+    first = docs[first_m]
+    for m, doc in docs.items():
+        differ = sorted(k for k in set(first["config"]) | set(doc["config"]) if k not in _PER_RUN
+                        and first["config"].get(k) != doc["config"].get(k))
+        if doc["benchmark"] != first["benchmark"]:
+            differ.insert(0, "benchmark")
+        if _policy_names(doc) != _policy_names(first):
+            differ.append("policies")
+        if differ:
+            raise ValueError(f"{out / f'm{m}'} was made with other settings than {out / f'm{first_m}'} "
+                             f"({', '.join(differ)} differ); write to another --out or delete the stale budget")
+
+
+def finished_budgets(out: Path, benchmark: str, options: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    """The budgets an earlier sweep finished in ``out`` (``m<m>/placement.json``), checked against each other and
+    against this call's benchmark, model, filter, noise and faults."""
+    docs = {int(p.parent.name[1:]): load_results(p) for p in out.glob("m*/placement.json")
+            if p.parent.name[1:].isdigit()}
+    if not docs:
+        return {}
+    same_settings(docs, out)
+    doc = docs[min(docs)]
+    cfg = doc["config"]
+    asked = {"benchmark": (doc["benchmark"], benchmark),
+             "model": (cfg["model"], options.get("model", "koopman")),
+             "filter": (cfg["filter"], options.get("filter", "ekf")),
+             "model_preset": (cfg["model_preset"], options.get("model_preset", "lite")),
+             "noise_level": (cfg["noise_level"], options.get("noise_level", 0.2)),
+             "noise_seeds": (len(cfg["noise_seeds"]), options.get("noise_seeds", 1)),
+             "faults": (SensorFaults.from_any(cfg.get("faults")),
+                        SensorFaults.from_any(DEFAULT_FAULTS if options.get("faults") == "default"
+                                              else options.get("faults")))}
+    if "task" not in options:  # a given task brings its own noise seed
+        asked["noise_seed"] = (cfg["noise_seed"], options.get("noise_seed", 0))
+    differ = [k for k, (was, now) in asked.items() if was != now]
+    if differ:
+        raise ValueError(f"{out} holds budgets {sorted(docs)} made with other settings ({', '.join(differ)} "
+                         "differ); write to another --out, or leave out --resume to overwrite them")
     return docs
 
 

@@ -222,14 +222,24 @@ def constraint_candidates(dataset: Dataset, constraint: str | np.ndarray | None)
     return np.asarray(arr, dtype=np.int64).reshape(-1)  # PlacementTask checks them
 
 
-def candidate_lattice(task: PlacementTask, n_target: int) -> np.ndarray:
-    """About ``n_target`` fluid cells on a regular sub-lattice of the grid (the same stride on every axis).
+def default_candidate_count(n_sensors: int) -> int:
+    """The candidate set's default size for m sensors: 32 cells, or 2m when that is more, so that the greedy
+    and learned policies still choose at large budgets (with m candidates they would take them all)."""
+    return max(32, 2 * int(n_sensors))
 
-    The stride is the smallest one leaving at most ``n_target`` lattice points in fluid cells, offset by half
-    a stride so the lattice is centred; the result is sorted (C order). Used as the candidate set of the
+
+def candidate_lattice(task: PlacementTask, n_target: int | None = None) -> np.ndarray:
+    """About ``n_target`` allowed cells (default :func:`default_candidate_count`) on a regular sub-lattice of the
+    grid (the same stride on every axis).
+
+    The stride is the smallest one leaving at most ``n_target`` lattice points in allowed cells, offset by half
+    a stride so the lattice is centred; the result is sorted (C order). When the allowed cells are too thin a
+    set for a lattice (a wall or body surface: fewer than half of ``min(n_target, allowed cells)`` land on it),
+    ``n_target`` allowed cells evenly spaced in C order are taken instead. Used as the candidate set of the
     greedy and learned policies, whose cost grows with the number of candidates.
     """
     bench = task.benchmark
+    n_target = default_candidate_count(task.n_sensors) if n_target is None else int(n_target)
     if n_target < task.n_sensors:
         raise ValueError(f"a candidate set needs at least n_sensors={task.n_sensors} cells, got n_target={n_target}")
     allowed = np.zeros(bench.n_cells, dtype=bool)
@@ -241,10 +251,13 @@ def candidate_lattice(task: PlacementTask, n_target: int) -> np.ndarray:
         cells = np.sort(flat[allowed[flat]])
         if len(cells) <= n_target:
             break
+    every = np.sort(np.asarray(task.allowed_cells, dtype=np.int64))
+    if 2 * len(cells) < min(n_target, len(every)):  # a thin allowed set: spread the picks along it instead
+        cells = every[np.unique(np.linspace(0, len(every) - 1, min(n_target, len(every))).round().astype(np.int64))]
     if len(cells) < task.n_sensors:
         raise ValueError(
-            f"a lattice of at most {n_target} points has only {len(cells)} allowed cells, fewer than "
-            f"{task.n_sensors} sensors; ask for more candidates"
+            f"only {len(cells)} candidate cells are allowed, fewer than {task.n_sensors} sensors; "
+            "allow more cells (a wider constraint)"
         )
     return cells
 

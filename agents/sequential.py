@@ -188,7 +188,8 @@ def SequentialPlacementVecEnv(scorer: LayoutScorer, candidates: np.ndarray, n_en
     return _VecEnv()
 
 
-def train_sequential(task: PlacementTask, *, timesteps: int = 16384, n_envs: int = 16, n_candidates: int = 32,
+def train_sequential(task: PlacementTask, *, timesteps: int = 16384, n_envs: int = 16,
+                     n_candidates: int | None = None,
                      candidates: np.ndarray | None = None, seed: int = 0, out: str | Path | None = None,
                      reference: str = "paper", ppo_kwargs: dict[str, Any] | None = None,
                      progress: bool = False) -> tuple[Any, dict[str, Any]]:
@@ -234,7 +235,7 @@ class SequentialLayout(StaticPolicy):
     name = "sequential"
 
     def __init__(self, checkpoint: str | Path | None = None, *, timesteps: int = 16384, n_envs: int = 16,
-                 n_candidates: int = 32, seed: int = 0, out: str | Path | None = None, agent: Any = None,
+                 n_candidates: int | None = None, seed: int = 0, out: str | Path | None = None, agent: Any = None,
                  candidates: np.ndarray | None = None) -> None:
         super().__init__()
         self.checkpoint = checkpoint

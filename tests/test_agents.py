@@ -5,6 +5,7 @@ the monotone covariance objective, PPO smoke runs, the results file."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -456,7 +457,7 @@ def test_budgets_and_faults_through_the_command(burgers_task, tmp_path: Path, mo
 def test_constraints_keep_every_static_policy_inside_the_allowed_cells(bench: str, cfd_tasks) -> None:
     """'surface' allows the fluid cells touching a solid body; a keep-out mask forbids its cells; every static
     policy (the paper layout moved to the nearest allowed cells) chooses inside them."""
-    from dks_gym_agents.policies import constraint_candidates
+    from dks_gym_agents.policies import constraint_candidates, default_candidate_count
 
     task = cfd_tasks[bench]
     fluid = task.fluid_mask
@@ -473,6 +474,9 @@ def test_constraints_keep_every_static_policy_inside_the_allowed_cells(bench: st
     assert not keep_out.ravel()[outside].any() and fluid.ravel()[outside].all()
     for allowed in (surface, outside):
         constrained = dataclasses.replace(task, candidates=allowed)
+        spread = candidate_lattice(constrained)  # the default size; the surface is too thin for a lattice
+        assert set(spread.tolist()) <= set(allowed.tolist()) and len(set(spread.tolist())) == len(spread)
+        assert 2 * len(spread) >= min(default_candidate_count(task.n_sensors), len(allowed))
         lattice = candidate_lattice(constrained, 3 * task.n_sensors)
         for policy in (PaperLayout(), RandomLayout(0), QRLayout(), GreedyLayout("information", candidates=lattice,
                                                                                 n_trajectories=1)):
@@ -509,6 +513,33 @@ def test_a_policy_that_cannot_be_fitted_at_a_budget_is_skipped_not_fatal(burgers
     assert docs[4]["config"]["skipped_policies"] == {"too-greedy": "the training snapshots hold only 3 POD modes"}
     with pytest.raises(ValueError, match="only 3 POD modes"):
         evaluate_placement("burgers", ["paper", TooGreedy()], task=burgers_task, log=lambda _: None)
+
+
+def test_a_resumed_sweep_keeps_finished_budgets_and_refuses_other_settings(burgers_task, tmp_path: Path) -> None:
+    """resume=True keeps a budget an earlier sweep finished (its file untouched), runs the others, tables every
+    budget of the folder; a folder made with other settings is refused before anything runs."""
+    from dks_gym.evaluation.results import load_results
+    from dks_gym_agents.evaluate import evaluate_budgets
+
+    evaluate_budgets("burgers", "paper", [2], task=burgers_task, out=tmp_path, log=lambda _: None)
+    first = (tmp_path / "m2" / "placement.json").read_bytes()
+    said: list[str] = []
+    docs = evaluate_budgets("burgers", "paper", [4], task=burgers_task, out=tmp_path, resume=True, log=said.append)
+    assert (tmp_path / "m2" / "placement.json").read_bytes() == first
+    assert sorted(docs) == [2, 4] and "m = 2" in (tmp_path / "budgets.md").read_text()
+    assert not any("budget m = 2" == line for line in said) and "budget m = 4" in said
+    docs = evaluate_budgets("burgers", "paper", [2, 4], task=burgers_task, out=tmp_path, resume=True,
+                            log=said.append)
+    assert [line for line in said if line.startswith("budget m")][-2:] == [
+        f"budget m = {m}: kept {tmp_path / f'm{m}' / 'placement.json'}" for m in (2, 4)]
+    with pytest.raises(ValueError, match="faults differ"):
+        evaluate_budgets("burgers", "paper", [8], task=burgers_task, out=tmp_path, resume=True, faults="default")
+    assert not (tmp_path / "m8").exists()
+    stale = load_results(tmp_path / "m4" / "placement.json")
+    stale["config"]["noise_level"] = 0.5
+    (tmp_path / "m4" / "placement.json").write_text(json.dumps(stale))
+    with pytest.raises(ValueError, match="noise_level differ"):
+        evaluate_budgets("burgers", "paper", [8], task=burgers_task, out=tmp_path, resume=True)
 
 
 def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
