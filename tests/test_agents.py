@@ -451,6 +451,8 @@ def test_budgets_and_faults_through_the_command(burgers_task, tmp_path: Path, mo
     assert bad.exit_code != 0 and "unknown sensor faults" in bad.output
     bad = CliRunner().invoke(evaluate_placement_command, ["burgers", "--budgets", "4,x", "--out", str(tmp_path / "b")])
     assert bad.exit_code != 0 and "--budgets must be" in bad.output
+    bad = CliRunner().invoke(evaluate_placement_command, ["burgers", "--resume", "--out", str(tmp_path / "r")])
+    assert bad.exit_code != 0 and "give --budgets" in bad.output
 
 
 @pytest.mark.parametrize("bench", CFD)
