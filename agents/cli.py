@@ -10,6 +10,7 @@ from dks_gym.benchmarks import BENCHMARKS
 from dks_gym.names import FILTERS, MODEL_KINDS
 
 from .evaluate import POLICIES
+from .policies import CONSTRAINTS
 
 
 @click.command("evaluate-placement")
@@ -33,8 +34,9 @@ from .evaluate import POLICIES
                    "'{\"dropout\": 0.2, \"drift\": 0.01}'.")
 @click.option("--constraint", default="fluid", show_default=True,
               help="Where sensors may go: 'fluid' (every fluid cell), 'surface' (fluid cells touching a solid "
-                   "body) or a .npy file: a boolean keep-out mask of the grid's shape (True = forbidden) or an "
-                   "integer array of allowed flat cells. The paper layout moves to the nearest allowed cells.")
+                   "body), 'wall' (the domain's walls and the body surface) or a .npy file: a boolean keep-out "
+                   "mask of the grid's shape (True = forbidden) or an integer array of allowed flat cells. The "
+                   "paper layout moves to the nearest allowed cells.")
 @click.option("--budgets", default=None,
               help="Comma-separated sensor counts, e.g. 2,4,8,16,32: one run per budget under OUT/m<m>, then "
                    "OUT/budgets.md and OUT/budgets.png (error vs budget); replaces --n-sensors.")
@@ -86,7 +88,7 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
 
     try:
         scenario = parse_faults(faults)
-        allowed = constraint if constraint in ("fluid", "surface") else _load_array(constraint)
+        allowed = constraint if constraint in CONSTRAINTS else _load_array(constraint)
         options = dict(model=model, filter=filter_, model_preset=preset, data_preset=data_preset,
                        noise_level=noise_level, noise_seed=noise_seed, noise_seeds=noise_seeds, faults=scenario,
                        constraint=allowed, shred=[name.strip() for name in shred.split(",") if name.strip()],
@@ -131,7 +133,8 @@ def _load_array(path: str):
     import numpy as np
 
     if not Path(path).is_file():
-        raise ValueError(f"--constraint must be 'fluid', 'surface' or a .npy file, and {path!r} is no file")
+        raise ValueError(f"--constraint must be one of {', '.join(CONSTRAINTS)} or a .npy file, and {path!r} is "
+                         "no file")
     return np.load(path, allow_pickle=False)
 
 

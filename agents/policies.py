@@ -178,38 +178,48 @@ def distinct_picks(picks: np.ndarray, n_candidates: int) -> np.ndarray:
     return arr if np.ndim(picks) == 2 else arr[0]
 
 
-#: Named candidate constraints: every fluid cell, or the fluid cells touching a solid body or obstacle.
-CONSTRAINTS = ("fluid", "surface")
+#: Named candidate constraints: every fluid cell, the body's surface, or every wall and body surface.
+CONSTRAINTS = ("fluid", "surface", "wall")
+
+
+def _body_surface(fluid: np.ndarray) -> np.ndarray:
+    """The fluid cells sharing a face with a solid cell inside the grid (boolean, the grid's shape)."""
+    solid = ~fluid
+    touching = np.zeros_like(fluid)
+    for axis in range(fluid.ndim):
+        for shift in (1, -1):
+            rolled = np.roll(solid, shift, axis=axis)
+            edge = [slice(None)] * fluid.ndim
+            edge[axis] = 0 if shift == 1 else -1  # np.roll wraps around: the grid's far side is no neighbour
+            rolled[tuple(edge)] = False
+            touching |= rolled
+    return fluid & touching
 
 
 def constraint_candidates(dataset: Dataset, constraint: str | np.ndarray | None) -> np.ndarray | None:
     """The cells a constraint allows, as ``PlacementTask(candidates=...)`` takes them (None: every fluid cell).
 
     ``"fluid"`` (or None): every fluid cell. ``"surface"``: the fluid cells sharing a face with a solid cell
-    (the cylinder, the dambreak's obstacle, the sphere): sensors on the body only. A boolean array of the
-    grid's shape: a keep-out mask (True = forbidden). An integer array: the allowed cells themselves.
+    (the cylinder, the dambreak's obstacle, the sphere): sensors on the body only. ``"wall"``: every solid
+    boundary, the domain's wall cells (the dambreak tank's floor and sides, the cylinder channel's walls)
+    and the body's surface, where pressure taps are mounted. A boolean array of the grid's shape: a keep-out
+    mask (True = forbidden). An integer array: the allowed cells themselves.
     """
     bench = dataset.benchmark
     fluid = bench.fluid_mask(dataset.cell_type)
     if constraint is None or (isinstance(constraint, str) and constraint == "fluid"):
         return None
     if isinstance(constraint, str):
-        if constraint != "surface":
+        if constraint not in CONSTRAINTS:
             raise ValueError(f"unknown constraint {constraint!r}; choose {', '.join(CONSTRAINTS)}, a keep-out mask "
                              "(a boolean array of the grid's shape, True = forbidden) or an array of allowed cells")
-        solid = ~fluid
-        touching = np.zeros_like(fluid)
-        for axis in range(fluid.ndim):
-            for shift in (1, -1):
-                rolled = np.roll(solid, shift, axis=axis)
-                edge = [slice(None)] * fluid.ndim
-                edge[axis] = 0 if shift == 1 else -1  # np.roll wraps around: the grid's far side is no neighbour
-                rolled[tuple(edge)] = False
-                touching |= rolled
-        cells = np.flatnonzero((fluid & touching).ravel())
+        allowed = _body_surface(fluid)
+        if constraint == "wall" and "wall" in bench.cell_type_codes:
+            allowed |= fluid & (np.asarray(dataset.cell_type) == bench.cell_type_codes["wall"])
+        cells = np.flatnonzero(allowed.ravel())
         if cells.size == 0:
-            raise ValueError(f"{bench.name} has no solid body, so no surface to put sensors on; use 'fluid' or a "
-                             "keep-out mask")
+            raise ValueError(f"{bench.name} has no solid body or wall, so no {constraint} to put sensors on; use "
+                             "'fluid' or a keep-out mask")
         return cells
     arr = np.asarray(constraint)
     if arr.dtype == bool:

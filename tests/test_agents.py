@@ -457,8 +457,9 @@ def test_budgets_and_faults_through_the_command(burgers_task, tmp_path: Path, mo
 
 @pytest.mark.parametrize("bench", CFD)
 def test_constraints_keep_every_static_policy_inside_the_allowed_cells(bench: str, cfd_tasks) -> None:
-    """'surface' allows the fluid cells touching a solid body; a keep-out mask forbids its cells; every static
-    policy (the paper layout moved to the nearest allowed cells) chooses inside them."""
+    """'surface' allows the fluid cells touching a solid body, 'wall' those and the domain's wall cells; a keep-out
+    mask forbids its cells; every static policy (the paper layout moved to the nearest allowed cells) chooses inside
+    them."""
     from dks_gym_agents.policies import constraint_candidates, default_candidate_count
 
     task = cfd_tasks[bench]
@@ -470,11 +471,19 @@ def test_constraints_keep_every_static_policy_inside_the_allowed_cells(bench: st
                       (np.eye(fluid.ndim, dtype=int)[axis], -np.eye(fluid.ndim, dtype=int)[axis])]
         assert fluid[index] and any(all(0 <= i < n for i, n in zip(nb, fluid.shape)) and not fluid[nb]
                                     for nb in neighbours)
+    wall = constraint_candidates(task.dataset, "wall")  # the body surface and the domain's walls
+    code = task.benchmark.cell_type_codes["wall"]
+    typed_wall = set(np.flatnonzero(fluid.ravel() & (task.dataset.cell_type.ravel() == code)).tolist())
+    added = set(wall.tolist()) - set(surface.tolist())
+    assert set(surface.tolist()) <= set(wall.tolist()) and fluid.ravel()[wall].all()
+    assert typed_wall <= set(wall.tolist()) and added and added <= typed_wall
+    for cell in added:  # a wall cell that is not on the body lies on the grid's edge
+        assert any(i in (0, n - 1) for i, n in zip(np.unravel_index(cell, fluid.shape), fluid.shape))
     keep_out = np.zeros(fluid.shape, dtype=bool)
     keep_out[tuple(slice(0, n // 2) for n in fluid.shape)] = True  # the lower corner block
     outside = constraint_candidates(task.dataset, keep_out)
     assert not keep_out.ravel()[outside].any() and fluid.ravel()[outside].all()
-    for allowed in (surface, outside):
+    for allowed in (surface, wall, outside):
         constrained = dataclasses.replace(task, candidates=allowed)
         spread = candidate_lattice(constrained)  # the default size; the surface is too thin for a lattice
         assert set(spread.tolist()) <= set(allowed.tolist()) and len(set(spread.tolist())) == len(spread)
@@ -495,6 +504,8 @@ def test_burgers_has_no_surface(burgers_task: PlacementTask) -> None:
 
     with pytest.raises(ValueError, match="no solid body"):
         constraint_candidates(burgers_task.dataset, "surface")
+    with pytest.raises(ValueError, match="no solid body or wall"):
+        constraint_candidates(burgers_task.dataset, "wall")
 
 
 def test_a_policy_that_cannot_be_fitted_at_a_budget_is_skipped_not_fatal(burgers_task, tmp_path: Path) -> None:
