@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from dks_gym.benchmarks import Benchmark
+from dks_gym.benchmarks.layout import surface_mask
 from dks_gym.dataset import Dataset
 from dks_gym.assimilation import AssimilationConfig
 
@@ -182,20 +183,6 @@ def distinct_picks(picks: np.ndarray, n_candidates: int) -> np.ndarray:
 CONSTRAINTS = ("fluid", "surface", "wall")
 
 
-def _body_surface(fluid: np.ndarray) -> np.ndarray:
-    """The fluid cells sharing a face with a solid cell inside the grid (boolean, the grid's shape)."""
-    solid = ~fluid
-    touching = np.zeros_like(fluid)
-    for axis in range(fluid.ndim):
-        for shift in (1, -1):
-            rolled = np.roll(solid, shift, axis=axis)
-            edge = [slice(None)] * fluid.ndim
-            edge[axis] = 0 if shift == 1 else -1  # np.roll wraps around: the grid's far side is no neighbour
-            rolled[tuple(edge)] = False
-            touching |= rolled
-    return fluid & touching
-
-
 def constraint_candidates(dataset: Dataset, constraint: str | np.ndarray | None) -> np.ndarray | None:
     """The cells a constraint allows, as ``PlacementTask(candidates=...)`` takes them (None: every fluid cell).
 
@@ -213,7 +200,7 @@ def constraint_candidates(dataset: Dataset, constraint: str | np.ndarray | None)
         if constraint not in CONSTRAINTS:
             raise ValueError(f"unknown constraint {constraint!r}; choose {', '.join(CONSTRAINTS)}, a keep-out mask "
                              "(a boolean array of the grid's shape, True = forbidden) or an array of allowed cells")
-        allowed = _body_surface(fluid)
+        allowed = surface_mask(~fluid, faces_only=True)  # the body's surface
         if constraint == "wall" and "wall" in bench.cell_type_codes:
             allowed |= fluid & (np.asarray(dataset.cell_type) == bench.cell_type_codes["wall"])
         cells = np.flatnonzero(allowed.ravel())

@@ -113,11 +113,13 @@ def mirror(flat: list[int] | np.ndarray, grid: tuple[int, ...], axis: int) -> np
     return np.ravel_multi_index(tuple(idx), grid).astype(np.int64)
 
 
-def surface_mask(solid: np.ndarray) -> np.ndarray:
-    """Non-solid cells that share a face, edge or corner with a solid cell (one cell diagonal away)."""
+def surface_mask(solid: np.ndarray, faces_only: bool = False) -> np.ndarray:
+    """Non-solid cells that share a face, edge or corner with a solid cell (one cell diagonal away), or with
+    ``faces_only`` a face. Cells beyond the grid's edge count as not solid."""
     from scipy import ndimage  # here, not at module level: `import dks_gym` stays free of scipy
 
-    return ndimage.binary_dilation(solid, structure=np.ones((3,) * solid.ndim, dtype=bool)) & ~solid
+    structure = ndimage.generate_binary_structure(solid.ndim, 1 if faces_only else solid.ndim)
+    return ndimage.binary_dilation(solid, structure=structure) & ~solid
 
 
 def interleave(*groups: list[int] | np.ndarray) -> np.ndarray:
