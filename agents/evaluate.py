@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 import math
 import platform
 import time
@@ -635,9 +636,11 @@ def same_settings(docs: dict[int, dict[str, Any]], out: Path) -> None:
     """Refuse budgets of ``out`` that were made with other settings than the first one (all but the budget)."""
     first_m = min(docs)
     first = docs[first_m]
+    # as stored: a budget run now holds tuples (the faults' slow_sensors) where one read back holds lists
+    stored = {m: json.loads(json.dumps(doc["config"])) for m, doc in docs.items()}
     for m, doc in docs.items():
-        differ = sorted(k for k in set(first["config"]) | set(doc["config"]) if k not in _PER_RUN
-                        and first["config"].get(k) != doc["config"].get(k))
+        differ = sorted(k for k in set(stored[first_m]) | set(stored[m]) if k not in _PER_RUN
+                        and stored[first_m].get(k) != stored[m].get(k))
         if doc["benchmark"] != first["benchmark"]:
             differ.insert(0, "benchmark")
         if _policy_names(doc) != _policy_names(first):

@@ -548,6 +548,12 @@ def test_a_resumed_sweep_keeps_finished_budgets_and_refuses_other_settings(burge
     with pytest.raises(ValueError, match="faults differ"):
         evaluate_budgets("burgers", "paper", [8], task=burgers_task, out=tmp_path, resume=True, faults="default")
     assert not (tmp_path / "m8").exists()
+    # with faults too: the budget run here and the one read back compare equal (tuples in one, lists in the other)
+    evaluate_budgets("burgers", "paper", [2], task=burgers_task, out=tmp_path / "f", faults="default",
+                     log=lambda _: None)
+    docs = evaluate_budgets("burgers", "paper", [2, 4], task=burgers_task, out=tmp_path / "f", resume=True,
+                            faults="default", log=lambda _: None)
+    assert sorted(docs) == [2, 4] and "m = 4" in (tmp_path / "f" / "budgets.md").read_text()
     stale = load_results(tmp_path / "m4" / "placement.json")
     stale["config"]["noise_level"] = 0.5
     (tmp_path / "m4" / "placement.json").write_text(json.dumps(stale))
