@@ -348,6 +348,8 @@ def test_ppo_smoke_sequential_and_adaptive_with_checkpoints(burgers_task: Placem
                                    ppo_kwargs={"batch_size": 16})
     assert meta["timesteps"] == 64 and meta["filter_runs"] > 0 and meta["learning_curve"]["timesteps"]
     assert (tmp_path / "sequential.zip").exists() and (tmp_path / "sequential_curve.png").exists()
+    stored = json.loads((tmp_path / "sequential.json").read_text())["identity"]["dataset"]
+    assert stored["path"] == Path(task.dataset.path).name  # the file's name, no machine path
     trained = SequentialLayout(agent=agent, candidates=np.array(meta["candidates"])).fit(task).layout
     np.testing.assert_array_equal(SequentialLayout(tmp_path / "sequential.zip").fit(task).layout, trained)
 
