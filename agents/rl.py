@@ -123,11 +123,12 @@ def record_ppo_run(agent: Any, curve: Any, task: Any, *, kind: str, candidates: 
 
 def model_identity(task: Any) -> dict[str, Any]:
     """What a learned policy was trained with: benchmark, latent model, dataset fingerprint, filter settings."""
+    from dks_gym.evaluation.results import shared_dataset
     from dks_gym.models.checkpoint import dataset_identity
 
-    dataset = {**dataset_identity(task.dataset), "path": Path(task.dataset.path).name}  # no machine path
     return {"benchmark": task.benchmark.name, "model": task.model.kind, "r": int(task.model.r),
-            "n_sensors": task.n_sensors, "dataset": dataset, "config": task.config.as_record()}
+            "n_sensors": task.n_sensors, "dataset": shared_dataset(dataset_identity(task.dataset)),
+            "config": task.config.as_record()}
 
 
 def save_agent(agent: Any, path: str | Path, metadata: dict[str, Any]) -> Path:

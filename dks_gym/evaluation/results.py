@@ -131,6 +131,12 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
     return record
 
 
+def shared_dataset(identity: dict[str, Any]) -> dict[str, Any]:
+    """A dataset identity fit to share and commit: the file's name, not its path (the fingerprint identifies
+    the data)."""
+    return {**identity, "path": Path(str(identity.get("path", ""))).name}
+
+
 def new_results(benchmark: str, preset: str, dataset: dict[str, Any], config: dict[str, Any],
                 records: Iterable[dict[str, Any]] = (), models: Iterable[dict[str, Any]] = ()) -> dict[str, Any]:
     """A results document (validated)."""
@@ -139,8 +145,7 @@ def new_results(benchmark: str, preset: str, dataset: dict[str, Any], config: di
         "schema_version": SCHEMA_VERSION,
         "benchmark": benchmark,
         "preset": preset,
-        # File names, not paths: a results file is shared and committed, and the fingerprint identifies the data.
-        "dataset": {**dataset, "path": Path(str(dataset.get("path", ""))).name},
+        "dataset": shared_dataset(dataset),  # a results file is shared and committed
         "config": dict(config),
         "models": [{**m, "checkpoint": Path(str(m["checkpoint"])).name} if m.get("checkpoint") else dict(m)
                    for m in models],
