@@ -5,15 +5,15 @@ BENCHMARK --budgets ... --out FOLDER/<benchmark>/<scenario>`` writes them (a sce
 such as ``none`` or ``default``, or a constraint such as ``surface-none``). :func:`write_summary` writes one
 page: the reading (``FOLDER/reading.md``, written by a person), then per benchmark and scenario the
 error-vs-budget figure and the best filter policy at each budget beside the random layouts, the forward run
-and SHRED; the cost of the faults per policy (scenario ``default`` against ``none``). Regenerate it with
-``python -m dks_gym_agents.summary FOLDER OUT.md``.
+and SHRED; the cost of the faults per policy (scenario ``default`` against ``none``, ``wall-default`` against
+``wall-none``, ...). Regenerate it with ``python -m dks_gym_agents.summary FOLDER OUT.md``.
 """
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -46,6 +46,40 @@ def _random_mean(recs: dict[str, dict[str, Any]]) -> float | None:
 
 def _is_filter_policy(name: str) -> bool:
     return name != "forward" and not name.startswith(("random-", "shred-"))
+
+
+def fault_pairs(scenarios: Iterable[str]) -> list[tuple[str, str]]:
+    """``(faulted, clean)`` scenario pairs that differ only by the faults: ``default`` and ``none``,
+    ``wall-default`` and ``wall-none``, ..."""
+    names = set(scenarios)
+    return [(s, s[: -len("default")] + "none") for s in sorted(names)
+            if (s == "default" or s.endswith("-default")) and s[: -len("default")] + "none" in names]
+
+
+def _fault_cost_table(bench: str, faulted: str, with_faults: dict[int, dict[str, Any]],
+                      without: dict[int, dict[str, Any]]) -> list[str]:
+    """Per policy and budget the MSE with the default faults over the same run without them."""
+    budgets = sorted(set(with_faults) & set(without))
+    if not budgets:
+        return []
+    where = "" if faulted == "default" else f" ({faulted[: -len('-default')]} candidates)"
+    lines = [f"### {bench}: what the default faults cost{where}", "",
+             f"Time-averaged MSE of `{faulted}` over `{faulted[: -len('default')]}none`, per policy and budget "
+             "(the same episodes and noise; > 1: the faults cost).", ""]
+    lines += ["| policy | " + " | ".join(f"m = {m}" for m in budgets) + " |", "|---|" + "---|" * len(budgets)]
+    names = [n for n in _by_policy(without[budgets[0]]) if not n.startswith("random-")]
+    for name in [*names, "random mean"]:
+        cells = []
+        for m in budgets:
+            a, b = _by_policy(with_faults[m]), _by_policy(without[m])
+            if name == "random mean":
+                x, y = _random_mean(a), _random_mean(b)
+            else:
+                x = a.get(name, {}).get("time_mean_mse_mean")
+                y = b.get(name, {}).get("time_mean_mse_mean")
+            cells.append(f"{x / y:.2f}" if x and y else "-")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 def summary_table(runs: dict[str, dict[str, dict[int, dict[str, Any]]]], figures: str | None = None) -> str:
@@ -81,25 +115,8 @@ def summary_table(runs: dict[str, dict[str, dict[int, dict[str, Any]]]], figures
                              f"| {_sci(_random_mean(recs))} | {_sci(shred and shred['time_mean_mse_mean'])} | {ratio} "
                              f"| {_sci(recs.get('forward', {}).get('time_mean_mse_mean'))} |")
             lines.append("")
-        if {"none", "default"} <= set(scenarios):
-            lines += [f"### {bench}: what the default faults cost", "",
-                      "Time-averaged MSE with the default faults over the same without, per policy and budget "
-                      "(the same episodes and noise; > 1: the faults cost).", ""]
-            budgets = sorted(set(scenarios["none"]) & set(scenarios["default"]))
-            lines += ["| policy | " + " | ".join(f"m = {m}" for m in budgets) + " |", "|---|" + "---|" * len(budgets)]
-            names = [n for n in _by_policy(scenarios["none"][budgets[0]]) if not n.startswith("random-")]
-            for name in [*names, "random mean"]:
-                cells = []
-                for m in budgets:
-                    a, b = _by_policy(scenarios["default"][m]), _by_policy(scenarios["none"][m])
-                    if name == "random mean":
-                        x, y = _random_mean(a), _random_mean(b)
-                    else:
-                        x = a.get(name, {}).get("time_mean_mse_mean")
-                        y = b.get(name, {}).get("time_mean_mse_mean")
-                    cells.append(f"{x / y:.2f}" if x and y else "-")
-                lines.append(f"| {name} | " + " | ".join(cells) + " |")
-            lines.append("")
+        for faulted, clean in fault_pairs(scenarios):
+            lines += _fault_cost_table(bench, faulted, scenarios[faulted], scenarios[clean])
     return "\n".join(lines)
 
 

@@ -711,7 +711,7 @@ def test_shred_ranks_beside_the_filters(burgers_task: PlacementTask, tmp_path: P
     from dks_gym.models.shred import ShredConfig
     from dks_gym_agents.evaluate import evaluate_budgets
 
-    from dks_gym_agents.summary import write_summary
+    from dks_gym_agents.summary import fault_pairs, write_summary
 
     quick = dict(task=burgers_task, random_seeds=2, shred=["paper", "qr"], log=lambda _: None,
                  shred_config=ShredConfig(epochs=2, noise_seeds=1, rank=4))
@@ -722,6 +722,8 @@ def test_shred_ranks_beside_the_filters(burgers_task: PlacementTask, tmp_path: P
     assert "![burgers, none: error vs budget](./burgers/none/budgets.png)" in page  # the figure beside its table
     cost = faulty[4]["records"][0]["time_mean_mse_mean"] / docs[4]["records"][0]["time_mean_mse_mean"]
     assert f"| paper | {cost:.2f} |" in page  # the faults' cost, default over none
+    assert fault_pairs(["none", "default", "wall-none", "wall-default", "surface-default", "greedy-none"]) == [
+        ("default", "none"), ("wall-default", "wall-none")]  # a constrained pair too; no partner, no table
     tmp_path = tmp_path / "burgers" / "none"
     doc = load_results(tmp_path / "m4" / "placement.json")
     rec = next(r for r in doc["records"] if r["policy"] == "shred-paper")
