@@ -62,7 +62,7 @@ def _fault_cost_table(bench: str, faulted: str, with_faults: dict[int, dict[str,
     budgets = sorted(set(with_faults) & set(without))
     if not budgets:
         return []
-    where = "" if faulted == "default" else f" ({faulted[: -len('-default')]} candidates)"
+    where = "" if faulted == "default" else f", {faulted[: -len('-default')]}"
     lines = [f"### {bench}: what the default faults cost{where}", "",
              f"Time-averaged MSE of `{faulted}` over `{faulted[: -len('default')]}none`, per policy and budget "
              "(the same episodes and noise; > 1: the faults cost).", ""]
