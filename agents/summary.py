@@ -56,15 +56,15 @@ def fault_pairs(scenarios: Iterable[str]) -> list[tuple[str, str]]:
             if (s == "default" or s.endswith("-default")) and s[: -len("default")] + "none" in names]
 
 
-def _fault_cost_table(bench: str, faulted: str, with_faults: dict[int, dict[str, Any]],
+def _fault_cost_table(bench: str, faulted: str, clean: str, with_faults: dict[int, dict[str, Any]],
                       without: dict[int, dict[str, Any]]) -> list[str]:
-    """Per policy and budget the MSE with the default faults over the same run without them."""
+    """Per policy and budget the MSE of scenario ``faulted`` over that of its pair ``clean`` (:func:`fault_pairs`)."""
     budgets = sorted(set(with_faults) & set(without))
     if not budgets:
         return []
-    where = "" if faulted == "default" else f", {faulted[: -len('-default')]}"
+    where = "" if faulted == "default" else f", {faulted.removesuffix('-default')}"
     lines = [f"### {bench}: what the default faults cost{where}", "",
-             f"Time-averaged MSE of `{faulted}` over `{faulted[: -len('default')]}none`, per policy and budget "
+             f"Time-averaged MSE of `{faulted}` over `{clean}`, per policy and budget "
              "(the same episodes and noise; > 1: the faults cost).", ""]
     lines += ["| policy | " + " | ".join(f"m = {m}" for m in budgets) + " |", "|---|" + "---|" * len(budgets)]
     names = [n for n in _by_policy(without[budgets[0]]) if not n.startswith("random-")]
@@ -116,7 +116,7 @@ def summary_table(runs: dict[str, dict[str, dict[int, dict[str, Any]]]], figures
                              f"| {_sci(recs.get('forward', {}).get('time_mean_mse_mean'))} |")
             lines.append("")
         for faulted, clean in fault_pairs(scenarios):
-            lines += _fault_cost_table(bench, faulted, scenarios[faulted], scenarios[clean])
+            lines += _fault_cost_table(bench, faulted, clean, scenarios[faulted], scenarios[clean])
     return "\n".join(lines)
 
 
