@@ -101,11 +101,14 @@ class PlacementTask:
         (``kind``, ``noise_level``, ``n_sensors``, ``noise_seed`` ...). ``train_if_missing=True`` trains a missing model (lite: minutes).
         """
         from dks_gym.dataset import load_dataset
+        from dks_gym.assimilation import tune_if_missing
         from dks_gym.models import load_model
 
         dataset = load_dataset(benchmark, data_preset)
         latent = load_model(benchmark, model, r=r, preset=model_preset, T=T, dataset=dataset, device=device,
                             train_if_missing=train_if_missing, progress=False)
+        if train_if_missing:  # a model trained here is tuned here too
+            tune_if_missing(latent, dataset, progress=False)
         return cls(dataset, latent, AssimilationConfig().replace(**config), candidates=candidates, seed=seed, device=device)
 
     @property

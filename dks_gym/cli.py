@@ -75,9 +75,19 @@ LAZY_COMMANDS = {
                    "else 1, the fastest measured on small CPUs; see docs/performance.md).")
 def main(threads: int | None) -> None:
     """dks-gym: Gymnasium environments for sparse flow sensing (Deep Koopman Sensing)."""
+    import logging
+
     from .threads import set_threads
 
     set_threads(threads)
+    # The library logs what it is about to do (training a missing model ...) to the "dks_gym" logger; the
+    # command line shows it, a Python caller decides with logging's own settings.
+    log = logging.getLogger("dks_gym")
+    if not log.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("dks-gym: %(message)s"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
 
 
 @main.group()
@@ -235,12 +245,20 @@ def doctor() -> None:
 @click.option("--eval/--no-eval", "evaluate", default=True, show_default=True,
               help="Report the one-step error on the training data against predicting no change.")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+@click.option("--export", is_flag=True,
+              help="Write the trained lite models into the package's shipped weights (dks_gym/models/weights/): "
+                   "the step that regenerates the shipped files.")
 def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | None, batch_size: int | None,
           lr: float | None, seed: int, device: str, data_preset: str, resume: bool, checkpoint_every: int | None,
-          evaluate: bool, progress: bool) -> None:
-    """Train BENCHMARK's latent models into checkpoints under $DKS_GYM_HOME/models (pDMD: fit)."""
+          evaluate: bool, progress: bool, export: bool) -> None:
+    """Train BENCHMARK's latent models into checkpoints under $DKS_GYM_HOME/models (pDMD: fit).
+
+    The end of training tunes each model's process-noise scale (`dks-gym calibrate`), so that its
+    checkpoint is ready for the filters."""
+    from .assimilation import tune_if_missing
     from .dataset import DatasetMissing, SchemaError, load_dataset
     from .home import DataHomeError
+    from .models.shipped import export_model
     from .models.training import one_step_error, train_model
 
     kinds = list(MODEL_KINDS) if model == "all" else [model]
@@ -269,6 +287,14 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
             line += (f", best validation loss {result.best_validation_loss:.3e}"
                      f"{' (stopped early)' if result.stopped_early else ''}")
         click.echo(f"{line} -> {result.path}")
+        tune_if_missing(result.model, ds, progress=progress)
+        click.echo(f"  process-noise scale {float(result.model.calibration['Q_scale']):.3g} "
+                   "(the EKF's 95 % intervals cover 95 % of the held-out frames)")
+        if export:
+            try:
+                click.echo(f"  exported -> {export_model(result.path, ds)}")
+            except ValueError as exc:
+                raise click.ClickException(str(exc)) from exc
         if evaluate:
             err = one_step_error(result.model, ds)
             click.echo(
@@ -276,6 +302,79 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
                 f"(persistence {err['persistence_mse']:.3e}, ratio {err['model_mse'] / err['persistence_mse']:.3g}; "
                 f"reconstruction {err['reconstruction_mse']:.3e})"
             )
+
+
+@main.command("calibrate")
+@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False))
+@click.option("--model", "model", type=click.Choice([*MODEL_KINDS, "all"]), default="all", show_default=True,
+              help="Latent model to tune; 'all' tunes the four in turn.")
+@click.option("--preset", type=click.Choice(["lite", "paper"]), default="lite", show_default=True)
+@click.option("--r", "r", type=click.IntRange(min=1), default=32, show_default=True, help="Latent dimension.")
+@click.option("--T", "T", type=click.IntRange(min=1), default=1, show_default=True, help="Training horizon.")
+@click.option("--data-preset", type=click.Choice(PRESETS), default="paper", show_default=True)
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+def calibrate(benchmark: str, model: str, preset: str, r: int, T: int, data_preset: str, progress: bool) -> None:
+    """Tune the process-noise scale of BENCHMARK's trained models (in $DKS_GYM_HOME/models) and store it.
+
+    The scale of the calibrated Q that makes the EKF's 95 % intervals cover 95 % of the model's held-out
+    frames (docs/filters.md). `dks-gym train` does it at the end of training; this command redoes it, for
+    example for a checkpoint trained by an older dks-gym. The shipped models are tuned already."""
+    from .assimilation import calibrate_process_noise
+    from .dataset import DatasetMissing, SchemaError, load_dataset
+    from .models.checkpoint import CheckpointMissing, checkpoint_path
+    from .models.training import load_model
+
+    benchmark = benchmark.lower()
+    try:
+        ds = load_dataset(benchmark, data_preset)
+    except (DatasetMissing, SchemaError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    for kind in (list(MODEL_KINDS) if model == "all" else [model]):
+        path = checkpoint_path(benchmark, kind, preset, r, T, data_preset=data_preset)
+        try:
+            latent = load_model(benchmark, kind, r=r, preset=preset, T=T, dataset=ds, path=path)
+        except (CheckpointMissing, ValueError) as exc:
+            raise click.ClickException(str(exc)) from exc
+        scale = calibrate_process_noise(latent, ds, progress=progress)
+        click.echo(f"{kind}: process-noise scale {scale:.3g} -> {path}")
+
+
+@main.command("models")
+@click.option("--data/--no-data", "check_data", default=True, show_default=True,
+              help="Check each shipped model against the local paper data, when present.")
+def models_command(check_data: bool) -> None:
+    """List the models shipped with dks-gym and whether the local data match the data they were trained on."""
+    from .dataset import Dataset
+    from .home import dataset_path
+    from .models.shipped import data_fingerprint, fingerprint_differences, list_shipped
+
+    shipped = list_shipped()
+    if not shipped:
+        click.echo("no shipped models in this installation")
+        return
+    datasets: dict[tuple[str, str], Any] = {}
+    click.echo(f"{'file':<42}{'size':>8}  {'Q scale':>8}  local data")
+    for item in shipped:
+        fp = item.fingerprint
+        key = (fp["benchmark"], fp["preset"])
+        status = "not checked"
+        if check_data:
+            if key not in datasets:
+                path = dataset_path(*key)
+                datasets[key] = Dataset(path) if path.exists() else None
+            ds = datasets[key]
+            if ds is None:
+                status = f"no data (`dks-gym data generate {key[0]}`)"
+            else:
+                diff = fingerprint_differences(fp, data_fingerprint(ds))
+                status = "match" if not diff else "DIFFERENT: " + "; ".join(diff)
+        scale = item.metadata.get("q_scale")
+        size = f"{item.path.stat().st_size / 2**20:.1f} MB"
+        scale = "-" if scale is None else f"{scale:.3g}"
+        click.echo(f"{item.path.name:<42}{size:>8}  {scale:>8}  {status}")
+    for ds in datasets.values():
+        if ds is not None:
+            ds.close()
 
 
 if __name__ == "__main__":  # pragma: no cover

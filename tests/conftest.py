@@ -33,6 +33,15 @@ def burgers_small(data_home: Path) -> Path:
     return generate_dataset("burgers", "small", progress=False)
 
 
+@pytest.fixture(scope="session")
+def burgers_paper(data_home: Path) -> Path:
+    """The real Burgers `paper` preset (the data the shipped models were trained on), generated once per
+    session (about 5 s)."""
+    from dks_gym.dataset import generate_dataset
+
+    return generate_dataset("burgers", "paper", progress=False)
+
+
 def synthetic_data(benchmark: str, n_train: int = 2, n_test: int = 2, n_t: int = 4, seed: int = 0):
     """GeneratedData in a benchmark's exact shapes, filled with smooth random travelling waves.
 

@@ -26,7 +26,8 @@ import dks_gym  # noqa: F401  (registers the env ids)
 from dks_gym.assimilation import (
     AssimilationConfig,
     FilterConfig,
-    ensure_process_noise_scale,
+    calibrate_process_noise,
+    process_noise_scale,
     gaussian_crps,
     gaussian_scores,
     jacobian_variance,
@@ -195,13 +196,14 @@ def test_tuned_q_scale_recovers_the_true_process_noise(tmp_path: Path) -> None:
     assert all(np.diff(coverages) >= -0.01), tuned["evaluations"]
     assert abs(tuned["coverage"] - 0.95) < 0.01, tuned
     assert 100 / 2 < tuned["scale"] < 100 * 2, tuned  # the true Q is 100 x the calibrated one
-    # ensure_... stores it once, and Q="calibrated" resolves to the scaled Q.
-    assert ensure_process_noise_scale(model, ds, FilterConfig(Q="paper")) is None  # not asked for
-    scale = ensure_process_noise_scale(model, ds)
+    # Before tuning, Q="calibrated" runs unscaled and says so once; the explicit call stores the scale, and
+    # Q="calibrated" resolves to the scaled Q.
+    with pytest.warns(UserWarning, match="dks-gym calibrate"):
+        torch.testing.assert_close(FilterConfig().process_noise(model), eye * Q_TRUE / 100)
+    scale = calibrate_process_noise(model, ds)
     assert float(model.calibration["Q_scale"]) == scale == tuned["scale"]
+    assert process_noise_scale(model) == scale
     torch.testing.assert_close(FilterConfig().process_noise(model), eye * Q_TRUE / 100 * scale)
-    model.calibration["Q"] = None  # a second call must not tune again (it would fail on this Q)
-    assert ensure_process_noise_scale(model, ds) == scale
 
 
 def test_tuning_refuses_bad_input_clearly(models: dict, burgers_small: Path) -> None:
@@ -212,8 +214,8 @@ def test_tuning_refuses_bad_input_clearly(models: dict, burgers_small: Path) -> 
     model.calibration = {k: v for k, v in model.calibration.items() if k != "trajectories"}
     with pytest.raises(ValueError, match="calibrate it first"):
         tune_process_noise(model, ds)
-    with pytest.warns(UserWarning, match="used unscaled"):  # an older checkpoint: scale 1, said so
-        assert ensure_process_noise_scale(model, ds) == 1.0
+    model.calibration.pop("Q_scale", None)
+    assert calibrate_process_noise(model, ds, write=False) == 1.0  # an older checkpoint: scale 1
 
 
 def test_q_scale_is_written_into_the_checkpoint(models: dict, tmp_path: Path) -> None:

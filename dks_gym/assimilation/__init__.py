@@ -5,23 +5,29 @@
 * :func:`run_episodes`: the one loop over whole episodes (the envs' layouts, a fixed layout per episode
   or a layout chosen per step), and :func:`run_assimilation` over a dataset split;
 * :class:`AssimilationConfig`, :class:`AssimilationResult`: an evaluation run's settings and measurements;
+* :mod:`~dks_gym.assimilation.tuning`: the scale of the calibrated process noise (:func:`calibrate_process_noise`);
 * :mod:`~dks_gym.assimilation.uncertainty`: the predictive std of the decoded estimate (``estimate_std``),
   :func:`reconstruction_variance` and the scores (:func:`gaussian_scores`, :func:`gaussian_crps`).
 """
 
-from .config import DIVERGENCE_POLICIES, FILTERS, INITIAL_CONDITIONS, AssimilationConfig, FilterConfig
+from .config import (
+    DIVERGENCE_POLICIES,
+    FILTERS,
+    INITIAL_CONDITIONS,
+    AssimilationConfig,
+    FilterConfig,
+    process_noise_scale,
+)
 from .core import Assimilation, Snapshot, approximate_initial_latent, field_errors, resolve_model
 from .episodes import (
     AssimilationResult,
     close_envs,
-    ensure_process_noise_scale,
     episode_envs,
-    held_out_coverage,
     run_assimilation,
     run_dataset,
     run_episodes,
-    tune_process_noise,
 )
+from .tuning import calibrate_process_noise, held_out_coverage, tune_if_missing, tune_process_noise
 from .uncertainty import (
     ensemble_variance,
     gaussian_crps,
@@ -40,19 +46,21 @@ __all__ = [
     "FilterConfig",
     "Snapshot",
     "approximate_initial_latent",
+    "calibrate_process_noise",
     "close_envs",
     "ensemble_variance",
-    "ensure_process_noise_scale",
     "episode_envs",
     "field_errors",
     "gaussian_crps",
     "gaussian_scores",
     "held_out_coverage",
     "jacobian_variance",
+    "process_noise_scale",
     "reconstruction_variance",
     "resolve_model",
     "run_assimilation",
     "run_dataset",
     "run_episodes",
+    "tune_if_missing",
     "tune_process_noise",
 ]

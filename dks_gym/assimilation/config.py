@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -117,8 +118,8 @@ class FilterConfig:
         if isinstance(self.Q, str):
             if self.Q == "paper":
                 return PAPER_Q
-            # The residual covariance times the scale tuned on held-out coverage (episodes.tune_process_noise).
-            return _calibrated(model, "Q") * float(model.calibration.get("Q_scale", 1.0))
+            # The residual covariance times the scale tuned on held-out coverage (tuning.tune_process_noise).
+            return _calibrated(model, "Q") * process_noise_scale(model)
         return self.Q
 
     def initial_covariance(self, model: Any) -> float | torch.Tensor:
@@ -157,12 +158,33 @@ class FilterConfig:
         return torch.cat([z0, z0.new_zeros(batch, n_sensors)], dim=1), P
 
 
+_UNTUNED_WARNED: set[tuple[str, str, str]] = set()
+
+
+def process_noise_scale(model: Any) -> float:
+    """The scale of the model's calibrated Q (``calibration["Q_scale"]``, tuned at the end of training).
+
+    A model without one runs with the unscaled calibrated Q and warns once per model, naming the command
+    that tunes it: nothing is tuned or written here."""
+    calibration = getattr(model, "calibration", None) or {}
+    if "Q_scale" in calibration:
+        return float(calibration["Q_scale"])
+    benchmark, kind = str(getattr(model, "benchmark", "")), str(getattr(model, "kind", ""))
+    key = (benchmark, kind, str(getattr(model, "checkpoint_path", id(model))))
+    if key not in _UNTUNED_WARNED:
+        _UNTUNED_WARNED.add(key)
+        warnings.warn(f"this {benchmark} {kind} model has no tuned process-noise scale: its calibrated Q is used "
+                      f"unscaled, so estimate_std may be too narrow or too wide. Tune it once with `dks-gym "
+                      f"calibrate {benchmark or 'BENCHMARK'} --model {kind or 'KIND'}`", stacklevel=3)
+    return 1.0
+
+
 def _calibrated(model: Any, name: str) -> torch.Tensor:
     value = getattr(model, "calibration", {}).get(name)
     if value is None:
         raise ValueError(
             f"this {getattr(model, 'kind', '')} model has no calibrated {name} (it was trained by an older dks-gym, "
-            "or built without training): retrain it (dks-gym train ... --restart, or load_model(..., "
+            "or built without training): retrain it (`dks-gym train ... --restart`, or load_model(..., "
             "train_if_missing=True) for a cached one), or set Q='paper' and P0='paper' (the paper's 1e-4 I and I) "
             "or your own values in the FilterConfig")
     return value

@@ -59,11 +59,13 @@ def field_errors(estimate: torch.Tensor, truth: torch.Tensor, scored: tuple[int,
 
 def resolve_model(model: Any, benchmark: str, *, r: int | None, preset: str, T: int, device: str,
                   train_if_missing: bool, dataset: Dataset | None = None) -> Any:
-    """A model object, or load the cached checkpoint named by ``model`` (one of :data:`MODEL_KINDS`).
+    """A model object, or the trained model named by ``model`` (one of :data:`MODEL_KINDS`).
 
     ``r`` (default 32 for names) must match a given model object's latent dimension when it is passed.
-    ``dataset``: the environment's dataset; a named checkpoint is looked up (and trained, with
-    ``train_if_missing``) for that dataset's preset, and must have been trained on it.
+    ``dataset``: the environment's dataset; a named model is looked up by :func:`~dks_gym.models.load_model`
+    (the user's checkpoint, then the shipped one) for that dataset, and must have been trained on it; with
+    ``train_if_missing`` a missing one is trained (its process-noise scale is tuned by the caller,
+    :func:`~dks_gym.assimilation.tuning.tune_if_missing`). Otherwise nothing is trained or written.
     """
     if isinstance(model, str):
         if model not in MODEL_KINDS:

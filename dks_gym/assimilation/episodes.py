@@ -17,9 +17,8 @@ the forecast Jacobian norm ``||F_k||_2`` of each step (EKF and forward run) and 
 batched filter step (CUDA synchronized); with ``uncertainty=True`` (default) also the scores of the
 predictive std per frame (95 % coverage, mean NEES per cell, Gaussian CRPS) and the final std field.
 
-The loop is also how ``Q="calibrated"`` gets its scale: :func:`tune_process_noise` bisects the factor on the
-calibrated Q that makes the EKF's 95 % intervals hold 95 % of the truth on the model's held-out trajectories,
-and :func:`ensure_process_noise_scale` (called by :func:`run_episodes` and the wrappers) does it once per model.
+The loop is also how ``Q="calibrated"`` gets its scale (:mod:`~dks_gym.assimilation.tuning`, run at the end of
+training and by ``dks-gym calibrate``, never by the loop itself).
 """
 
 from __future__ import annotations
@@ -37,7 +36,6 @@ import torch
 
 from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
-from ..models.checkpoint import update_calibration
 from .config import AssimilationConfig, FilterConfig
 from .core import Assimilation, field_errors
 
@@ -221,7 +219,6 @@ def run_episodes(
     if layouts is not None:
         layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
         positions = _layout_positions(readers, which, layouts)
-    ensure_process_noise_scale(model, envs[0].dataset, config.filter)  # once per model (Q="calibrated")
     n_t = envs[0].dataset.n_frames
     if n_t < 2:
         raise ValueError(f"{envs[0].dataset.path} has {n_t} frame(s); assimilation needs at least 2")
@@ -367,108 +364,3 @@ def run_dataset(model: Any, dataset: Dataset, trajectories: np.ndarray, noise_se
 # ``model.calibration["Q_scale"]`` (and in the model's checkpoint) and multiplies ``Q`` wherever
 # ``Q="calibrated"`` is resolved. Like every calibration it is measured at one sensing setting; other layouts
 # and noise levels get the same scale.
-
-#: The coverage the tuned filter should reach over the held-out frames.
-TARGET_COVERAGE = 0.95
-#: Bisection bracket of the scale (2^-4 .. 2^12) and its steps: a final bracket of 2^(16/2^6), a factor 1.19.
-SCALE_RANGE = (2.0**-4, 2.0**12)
-BISECTIONS = 6
-#: At most this many of the calibration trajectories are filtered per evaluation (evenly spread): the tuning
-#: costs 7 filter runs of this batch with the predictive std (about 1 min for Burgers, 6 min for the dambreak
-#: on one core).
-MAX_TRAJECTORIES = 5
-
-
-def _trajectories(model: Any) -> list[int] | None:
-    held_out = (getattr(model, "calibration", None) or {}).get("trajectories")
-    if held_out is None:
-        return None
-    index = [int(i) for i in torch.as_tensor(held_out).reshape(-1)]
-    if len(index) > MAX_TRAJECTORIES:
-        index = [index[int(round(k))] for k in np.linspace(0, len(index) - 1, MAX_TRAJECTORIES)]
-    return index
-
-
-def held_out_coverage(model: Any, dataset: Dataset, scale: float, trajectories: list[int], *,
-                      noise_level: float = 0.2, n_sensors: int = 16) -> float:
-    """The EKF's 95 % coverage over frames 1..n_t-1 of ``trajectories`` (train split) with ``scale * Q``."""
-    config = AssimilationConfig(noise_level=noise_level, n_sensors=n_sensors, split="train")
-    config = config.replace(Q=scale * model.calibration["Q"], P0="calibrated")
-    result = run_assimilation(model, dataset, config, trajectories=trajectories)
-    return float(np.mean(result.step_coverage[:, 1:]))
-
-
-def tune_process_noise(model: Any, dataset: Dataset, *, target: float = TARGET_COVERAGE,
-                       noise_level: float = 0.2, n_sensors: int = 16, progress: bool = False) -> dict[str, Any]:
-    """The scale ``s`` of the calibrated ``Q`` whose EKF covers ``target`` of the truth on the held-out frames.
-
-    Bisection on ``log s`` within :data:`SCALE_RANGE` (the coverage grows with ``s``); returns ``scale``,
-    ``coverage`` (at that scale) and ``evaluations`` [(scale, coverage)]. Does not change ``model``.
-    ``progress``: a bar over the (at most ``BISECTIONS + 1``) filter runs.
-    """
-    from tqdm.auto import tqdm
-
-    if not 0.0 < target < 1.0:
-        raise ValueError(f"target coverage must lie in (0, 1), got {target!r}")
-    trajectories = _trajectories(model)
-    if not trajectories or "Q" not in model.calibration:
-        raise ValueError("the model has no calibrated Q and held-out trajectories (model.calibration['Q'], "
-                         "['trajectories']); calibrate it first (dks_gym.models.calibrate)")
-    lo, hi = (math.log(s) for s in SCALE_RANGE)
-    evaluations: list[tuple[float, float]] = []
-    bar = tqdm(total=BISECTIONS + 1, desc=f"tuning Q for {model.kind}", unit="run", disable=not progress,
-               leave=False, dynamic_ncols=True)
-
-    def coverage(log_scale: float) -> float:
-        value = held_out_coverage(model, dataset, math.exp(log_scale), trajectories, noise_level=noise_level,
-                                  n_sensors=n_sensors)
-        evaluations.append((math.exp(log_scale), value))
-        bar.set_postfix_str(f"scale {math.exp(log_scale):.3g}: coverage {value:.3f}", refresh=False)
-        bar.update(1)
-        return value
-
-    try:
-        if coverage(lo) < target:  # else already honest (or overcautious) at the smallest scale
-            for _ in range(BISECTIONS):
-                mid = 0.5 * (lo + hi)
-                if coverage(mid) < target:
-                    lo = mid
-                else:
-                    hi = mid
-    finally:
-        bar.close()
-    best = min(evaluations, key=lambda e: abs(e[1] - target))
-    return {"scale": best[0], "coverage": best[1], "evaluations": evaluations}
-
-
-def ensure_process_noise_scale(model: Any, dataset: Dataset, config: FilterConfig | None = None, *,
-                               progress: bool = True) -> float | None:
-    """``model.calibration["Q_scale"]``, tuned now (:func:`tune_process_noise`) if the model has none.
-
-    Does nothing (None) when ``config`` does not use ``Q="calibrated"`` or the model has no calibration.
-    Models whose calibration names no held-out trajectories (trained by an older dks-gym) get 1 with a
-    warning. A newly tuned scale is written into the model's checkpoint when it has one
-    (``model.checkpoint_path``), so that it is tuned once. The wrappers, ``dks-gym demo``, ``reproduce`` and
-    the placement tasks reach it through :func:`run_episodes` or the wrappers.
-    """
-    calibration = getattr(model, "calibration", None) or {}
-    asked = config is None or (isinstance(config.Q, str) and config.Q == "calibrated")
-    if not asked or "Q" not in calibration:
-        return None
-    if "Q_scale" in calibration:
-        return float(calibration["Q_scale"])
-    if "trajectories" not in calibration:
-        warnings.warn(f"this {getattr(model, 'kind', '')} model's calibration names no held-out trajectories "
-                      "(trained by an older dks-gym): its calibrated Q is used unscaled; retrain it for an "
-                      "honest estimate_std", stacklevel=2)
-        model.calibration = {**calibration, "Q_scale": torch.tensor(1.0, dtype=torch.float64)}
-        return 1.0
-    print(f"dks-gym: scaling the calibrated process noise of this {dataset.benchmark.name} {model.kind} model "
-          f"so that the EKF's 95 % intervals cover 95 % of its held-out frames (once; kept with the model)",
-          file=sys.stderr, flush=True)
-    tuned = tune_process_noise(model, dataset, progress=progress)
-    model.calibration = {**calibration, "Q_scale": torch.tensor(tuned["scale"], dtype=torch.float64)}
-    path = getattr(model, "checkpoint_path", None)
-    if path is not None:
-        update_calibration(path, model.calibration)
-    return tuned["scale"]

@@ -340,6 +340,6 @@ BURGERS = BurgersBenchmark(
     generator_entry_point="dks_gym.benchmarks.burgers:generate_burgers",
     generation_costs={
         "small": GenerationCost("about 15 s on one CPU core"),
-        "paper": GenerationCost("about 1 min on one CPU core"),
+        "paper": GenerationCost("about 5 s on one CPU core"),
     },
 )

@@ -85,12 +85,15 @@ def compare_command(a: Path, b: Path, experiment: str | None) -> None:
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder for the figure and the results file (default: $DKS_GYM_HOME/demo).")
 @click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
-def demo_command(out: Path | None, device: str) -> None:
-    """Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a figure (minutes)."""
+@click.option("--train", is_flag=True,
+              help="Train and tune the four lite models into $DKS_GYM_HOME/models first (minutes per model) "
+                   "instead of using the shipped ones.")
+def demo_command(out: Path | None, device: str, train: bool) -> None:
+    """Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a figure."""
     from .demo import run_demo
 
     try:
-        run_demo(out, device=device, log=click.echo)
+        run_demo(out, device=device, train=train, log=click.echo)
     except _errors() as exc:
         raise click.ClickException(str(exc)) from exc
 

@@ -1,10 +1,12 @@
-"""``dks-gym demo``: the paper's main comparison on Burgers, from nothing, in a few minutes on a laptop CPU.
+"""``dks-gym demo``: the paper's main comparison on Burgers, from nothing, in about a minute on a laptop CPU.
 
-Generates the Burgers ``paper`` dataset if it is missing (seconds), trains the four ``lite`` models if
-their checkpoints are missing (minutes; reused afterwards), runs the forward run, the EKF and the EnKF
-(n = 20) of every model over the 10 test trajectories (20% noise, 16 sensors, approximate initial
-condition, r = 32, the default calibrated Q and P0), prints the table of final-time errors and writes one figure (final MSE of each model
-and filter divided by the MLP forward-run error, as in the paper's bar charts) and the results file.
+Generates the Burgers ``paper`` dataset if it is missing (seconds), takes the four ``lite`` models (the
+user's own trained ones in the data home when present, else the ones shipped with dks-gym; ``train=True``
+trains and tunes them into the data home first, minutes per model), runs the forward run, the EKF and the
+EnKF (n = 20) of every model over the 10 test trajectories (20% noise, 16 sensors, approximate initial
+condition, r = 32, the default calibrated Q and P0), prints the table of final-time errors and writes one
+figure (final MSE of each model and filter divided by the MLP forward-run error, as in the paper's bar
+charts) and the results file.
 """
 
 from __future__ import annotations
@@ -20,10 +22,6 @@ from .results import make_record, new_results, save_results
 
 DEMO_BENCHMARK = "burgers"
 DEMO_FILTERS = ("forward", "ekf", "enkf")
-#: Measured: `dks-gym train burgers --model all --preset lite` on one CPU core (docs/training.md).
-DEMO_TRAIN_MINUTES_PER_MODEL = "6-8"
-
-
 def _fmt(mean: float | None, std: float | None) -> str:
     if mean is None:
         return "diverged"
@@ -47,10 +45,10 @@ def demo_table(records: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def first_run_message() -> str:
-    """What the demo is about to do, in plain words: what it must generate and train first, and how long."""
+def first_run_message(train: bool = False) -> str:
+    """What the demo is about to do, in plain words: what it must generate or train first."""
     from ..home import data_home, dataset_path
-    from ..models.checkpoint import calibration_names, checkpoint_path
+    from ..models.checkpoint import checkpoint_path
 
     bench = get_benchmark(DEMO_BENCHMARK)
     todo = []
@@ -58,51 +56,59 @@ def first_run_message() -> str:
         todo.append(f"generating the Burgers data ({bench.generation_costs['paper'].time})")
     untrained = [MODEL_LABELS[kind] for kind in MODEL_ORDER
                  if not checkpoint_path(DEMO_BENCHMARK, kind, "lite", 32, 1, data_preset="paper").exists()]
-    if untrained:
-        todo.append(f"training the {'four' if len(untrained) == 4 else ', '.join(untrained)} lite "
-                    f"model{'s' if len(untrained) > 1 else ''} to convergence (about {DEMO_TRAIN_MINUTES_PER_MODEL} "
-                    "min for each neural one on one CPU core, seconds for pDMD)")
-    run = "then running the forward run, the EKF and the EnKF of each model on the 10 test trajectories"
-    paths = [checkpoint_path(DEMO_BENCHMARK, kind, "lite", 32, 1, data_preset="paper") for kind in MODEL_ORDER]
-    untuned = len(untrained) if untrained else sum("Q_scale" not in calibration_names(p) for p in paths)
-    if untuned:
-        run += " (first tuning each filter's process noise once, about 1 min per model)"
-    if not todo:
-        return f"dks-gym demo: data and models found in {data_home()}; {run} (about {1.5 + untuned:g} min)."
-    return (f"dks-gym demo, first run: {' and '.join(todo)}, {run}. Later runs reuse the data and the models "
-            f"kept in {data_home()}.")
+    if train and untrained:
+        todo.append(f"training and tuning the {'four' if len(untrained) == 4 else ', '.join(untrained)} lite "
+                    f"model{'s' if len(untrained) > 1 else ''} (minutes for each neural one on one CPU core; "
+                    "docs/training.md)")
+    models = ("your own lite models" if not untrained else
+              "the lite models shipped with dks-gym" if len(untrained) == 4 else
+              f"the shipped lite models for {', '.join(untrained)} and your own for the others")
+    run = "running the forward run, the EKF and the EnKF of each model on the 10 test trajectories"
+    if train:
+        return (f"dks-gym demo --train: {' and '.join(todo) + ', then ' if todo else ''}{run}. The data and "
+                f"models are kept in {data_home()}.")
+    return f"dks-gym demo: {' and '.join(todo) + ', then ' if todo else ''}{run} with {models}."
 
 
 def run_demo(
     out: str | Path | None = None,
     *,
     device: str = "cpu",
+    train: bool = False,
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Run the demo (see the module docstring); return the results document written to ``out/results.json``
-    (``out`` defaults to ``$DKS_GYM_HOME/demo``)."""
+    (``out`` defaults to ``$DKS_GYM_HOME/demo``). ``train``: train and tune the models into the data home
+    (resuming or reusing what is there) instead of taking the shipped ones."""
     import torch
     from tqdm.auto import tqdm
 
     from ..version import __version__
     from ..dataset import DatasetMissing, generate_dataset, load_dataset
-    from ..models import load_model
+    from ..models import load_model, train_model
     from ..models.checkpoint import dataset_identity
-    from ..assimilation import AssimilationConfig, run_assimilation
+    from ..models.shipped import is_shipped
+    from ..assimilation import AssimilationConfig, run_assimilation, tune_if_missing
     from ..home import data_home
 
     start = time.perf_counter()
     out = data_home() / "demo" if out is None else Path(out)
-    log(first_run_message())
+    log(first_run_message(train))
     try:
         ds = load_dataset(DEMO_BENCHMARK, "paper")
     except DatasetMissing:
         ds = load_dataset(DEMO_BENCHMARK, "paper", generate_dataset(DEMO_BENCHMARK, "paper", progress=progress))
     models = {}
     for kind in MODEL_ORDER:
-        models[kind] = load_model(DEMO_BENCHMARK, kind, r=32, preset="lite", dataset=ds, device=device,
-                                  train_if_missing=True, progress=progress)
+        if train:  # into the data home, resuming or reusing what is there, then tuned (dks-gym train's path)
+            models[kind] = train_model(DEMO_BENCHMARK, kind, 32, "lite", 1, dataset=ds, device=device,
+                                       progress=progress).model
+            tune_if_missing(models[kind], ds, progress=progress)
+        else:
+            models[kind] = load_model(DEMO_BENCHMARK, kind, r=32, preset="lite", dataset=ds, device=device,
+                                      progress=progress)
+    shipped = [MODEL_LABELS[k] for k, m in models.items() if is_shipped(getattr(m, "checkpoint_path", None))]
     trained = time.perf_counter()
 
     records = []
@@ -122,7 +128,8 @@ def run_demo(
               "t0": float(ds.time[0]), "param_name": ds.param_name, "observed_channel": ds.observed_channel,
               "scored_channels": list(ds.scored_channels), "device": device, "dtype": "float32",
               "data_preset": ds.preset, "dks_gym_version": __version__, "torch_version": torch.__version__,
-              "wall_time_s": time.perf_counter() - start, "setup_time_s": trained - start}
+              "wall_time_s": time.perf_counter() - start, "setup_time_s": trained - start,
+              "shipped_models": [k for k, m in models.items() if is_shipped(getattr(m, "checkpoint_path", None))]}
     doc = new_results(DEMO_BENCHMARK, "lite", dataset_identity(ds), config, records)
     save_results(doc, out / "results.json")
 
@@ -138,6 +145,9 @@ def run_demo(
         "Q and P0 (the paper's Q = 1e-4 I: `dks-gym reproduce burgers`)")
     log(demo_table(records))
     log("")
+    if shipped:
+        log(f"models: shipped with dks-gym ({', '.join(shipped)}); train your own with `dks-gym demo --train` "
+            "or `dks-gym train burgers`")
     log(f"figure: {figure}\nresults: {out / 'results.json'}\n"
         f"total {time.perf_counter() - start:.0f} s (data and models {trained - start:.0f} s). "
         "For every experiment of the paper: `dks-gym reproduce burgers`.")

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from ..assimilation import AssimilationConfig, AssimilationResult, run_assimilation
+from ..assimilation import AssimilationConfig, AssimilationResult, run_assimilation, tune_if_missing
 from ..assimilation.config import PAPER_P0, PAPER_Q
 from .figures import (
     MODEL_LABELS,
@@ -174,8 +174,9 @@ def _model_info(model: Any, kind: str, r: int, T: int, preset: str, dataset: Any
     from ..models.checkpoint import checkpoint_path, read_metadata
     from ..models.training import one_step_error
 
-    path = checkpoint_path(dataset.benchmark.name, kind, preset, r, T, data_preset=dataset.preset or "custom")
-    meta = read_metadata(path) if path.exists() else {}
+    path = getattr(model, "checkpoint_path", None) or checkpoint_path(
+        dataset.benchmark.name, kind, preset, r, T, data_preset=dataset.preset or "custom")
+    meta = read_metadata(path) if Path(path).exists() else {}
     info = {"model": kind, "r": r, "T": T, "preset": "" if model.fitted_in_closed_form else preset,
             "checkpoint": str(path),
             "steps": meta.get("steps_done"), "batch_size": meta.get("batch_size"),
@@ -192,17 +193,20 @@ def _key(experiment: str, run: Run) -> tuple:
 
 
 def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Any) -> bool:
-    """Whether ``load_model`` finds model ``key`` (kind, r, T) trained in the data home: complete, and trained
-    with the preset's current schedule."""
+    """Whether ``load_model`` finds model ``key`` (kind, r, T) without training: in the data home, complete and
+    trained with the preset's current schedule, or shipped with dks-gym for this dataset."""
     from ..models.checkpoint import checkpoint_path, read_metadata
+    from ..models.shipped import find_shipped
     from ..models.training import is_stale
 
     kind, r, T = key
     path = checkpoint_path(benchmark, kind, preset, r, T, data_preset=dataset.preset or "custom")
-    if not path.exists():
-        return False
-    meta = read_metadata(path)
-    return bool(meta.get("complete")) and not is_stale(meta, benchmark, kind, preset)
+    if path.exists():
+        meta = read_metadata(path)
+        if meta.get("complete") and not is_stale(meta, benchmark, kind, preset):
+            return True
+    shipped = find_shipped(benchmark, kind, preset, r, T)
+    return shipped is not None and not shipped.differences(dataset)
 
 
 def _save(previous: dict[str, Any] | None, benchmark: str, preset: str, identity: dict[str, Any],
@@ -319,6 +323,8 @@ def reproduce(
                 kind, r, T = run.model_key
                 loaded[run.model_key] = load_model(benchmark, kind, r=r, preset=preset, T=T, dataset=ds,
                                                    device=device, train_if_missing=train, progress=progress)
+                if train:  # a model trained here is tuned here too (Q="calibrated" needs its scale)
+                    tune_if_missing(loaded[run.model_key], ds, progress=progress)
                 infos.append(_model_info(loaded[run.model_key], kind, r, T, preset, ds, device))
             bar.set_postfix_str(f"{experiment}: {run.model} {run.filter} {run.initial}", refresh=False)
             if run.cache_key not in cache:
@@ -460,8 +466,8 @@ def tables_markdown(doc: dict[str, Any]) -> str:
         f"{cfg.get('created')} on {cfg.get('device')} with dks-gym {cfg.get('dks_gym_version')}."),
     ]
     if bench != "burgers":
-        parts += ["", ("The paper's CFD data are not specified exactly enough to compare absolute numbers (SPEC "
-                  "section 6): compare orderings and ratios.")]
+        parts += ["", ("The paper's CFD data are not specified exactly enough to compare absolute numbers: "
+                  "compare orderings and ratios.")]
     if doc.get("models"):
         rows = [[MODEL_LABELS.get(m["model"], m["model"]), str(m["r"]), str(m["T"]), m.get("preset") or "-",
                  str(m.get("steps") if m.get("steps") is not None else "-"),

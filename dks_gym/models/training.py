@@ -39,6 +39,7 @@ weights an uninterrupted one reaches (bit-identical on CPU). pDMD has no optimiz
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -68,6 +69,9 @@ from .build import build_model
 from .latent_model import LatentModel, NeuralLatentModel
 from .loss_curves import write_loss_curves
 from .presets import benchmark_shape
+from .shipped import find_shipped
+
+logger = logging.getLogger(__name__)
 
 LEARNING_RATE = 1e-4  # Adam, all models and benchmarks (the paper's training tables)
 LOSS_TERMS = ("total", "reconstruction", "prediction", "latent")
@@ -666,15 +670,18 @@ def load_model(
     progress: bool = True,
     path: Path | str | None = None,
 ) -> LatentModel:
-    """The trained ``model`` of ``benchmark`` from its checkpoint, in eval mode on ``device``.
+    """The trained ``model`` of ``benchmark``, in eval mode on ``device``.
 
-    The checkpoint is looked up by (benchmark, model, preset, r, T) under ``data_home()/models`` for the
-    dataset preset of ``dataset`` (or ``data_preset``). If it is missing or unfinished, ``train_if_missing``
-    trains (or resumes) it with the preset's schedule and a progress bar; otherwise CheckpointMissing (a
-    FileNotFoundError) names the ``dks-gym train`` command. A cached checkpoint trained with another
-    schedule than the preset's (an older dks-gym, custom steps) counts as missing and is retrained from
-    scratch; one given by ``path`` is loaded as it is. A checkpoint for another benchmark, r, preset or T,
-    or trained on another dataset than ``dataset``, raises ValueError.
+    Looked up in this order: the user's own checkpoint (``path``, or the data home's
+    ``models/`` for (benchmark, model, preset, r, T) and the dataset preset of ``dataset`` or
+    ``data_preset``); then the model that ships with dks-gym (:mod:`dks_gym.models.shipped`), used only
+    when ``dataset`` matches the data it was trained on; then, with ``train_if_missing=True``, training
+    (or resuming) it with the preset's schedule and a progress bar. Otherwise :class:`CheckpointMissing`
+    (a FileNotFoundError) says what was looked for, what differs from a shipped model, and names the
+    ``dks-gym train`` command. A cached checkpoint trained with another schedule than the preset's (an
+    older dks-gym, custom steps) is passed over; one given by ``path`` is loaded as it is. A checkpoint
+    for another benchmark, r, preset or T, or trained on another dataset than ``dataset``, raises
+    ValueError. Nothing is written unless ``train_if_missing`` trains.
     """
     name = benchmark_shape(benchmark).name
     check_model_args(model, preset, r, T)
@@ -699,16 +706,22 @@ def load_model(
             reason = f"training in {path} stopped at step {meta.get('steps_done')} of {meta.get('steps')}"
     else:
         reason = f"no trained {name} {model} model (preset {preset}, r={r}, T={T}) at {path}"
+    shipped = find_shipped(name, model, preset, r, T) if cached else None
+    if shipped is not None:
+        differences = [] if dataset is None else shipped.differences(dataset)
+        if not differences:
+            return model_from_checkpoint(shipped.path, _device(device))
+        reason += (f"; the {name} {model} model that ships with dks-gym was trained on other data than "
+                   f"{dataset.path}: {'; '.join(differences)}")
     if not train_if_missing:
         raise CheckpointMissing(
             f"{reason}. Train it with `{command}`{'' if stale else ' (it resumes an unfinished run)'}, or call "
             "load_model(..., train_if_missing=True)."
         )
-    if progress:  # plain words: this is the expected first use, not an error
-        what = ("retraining it with the current schedule" if stale else
-                "resuming its unfinished training" if path.exists() else "training it on first use")
-        print(f"dks-gym: {name} {model} model ({preset}, r={r}, T={T}): {what}, as `{command}` would; it is "
-              f"kept at {path} for later runs", flush=True)
+    what = ("retraining it with the current schedule" if stale else
+            "resuming its unfinished training" if path.exists() else "training it on first use")
+    logger.info("%s %s model (%s, r=%d, T=%d): %s, as `%s` would; it is kept at %s for later runs",
+                name, model, preset, r, T, what, command, path)
     result = train_model(name, model, r, preset, T, dataset=dataset, data_preset=data_preset, device=device,
                          path=path, progress=progress, resume=not stale)
     return result.model

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from ..assimilation import Assimilation, FilterConfig, Snapshot, ensure_process_noise_scale, resolve_model
+from ..assimilation import Assimilation, FilterConfig, Snapshot, resolve_model, tune_if_missing
 from ..envs.sensing import SensingEnv
 
 REWARDS = ("mse", "normalized_mse")
@@ -49,7 +49,8 @@ def build_assimilation(base: SensingEnv, model: Any, filter: str | None, config:
         config = dataclasses.replace(config, kind=filter)
     latent = resolve_model(model, base.benchmark.name, r=r, preset=model_preset, T=T, device=device,
                            train_if_missing=train_if_missing, dataset=base.dataset)
-    ensure_process_noise_scale(latent, base.dataset, config)  # once per model; kept in its checkpoint
+    if train_if_missing and isinstance(model, str):  # asked to prepare a missing model: tune it too
+        tune_if_missing(latent, base.dataset)
     return Assimilation(latent, config, device=device, dtype=dtype, uncertainty=uncertainty,
                         reconstruction_var=reconstruction_var)
 

@@ -1,0 +1,159 @@
+"""The models that ship with dks-gym: small inference-only files, used only on the data they were trained on,
+without training, tuning or writing anything, and reproducing the committed Burgers table."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from safetensors import safe_open
+
+import dks_gym  # noqa: F401  (registers the env ids)
+from dks_gym.assimilation import AssimilationConfig, run_assimilation
+from dks_gym.dataset import Dataset
+from dks_gym.models import CheckpointMissing, load_model
+from dks_gym.models.shipped import (
+    MAX_FILE_BYTES,
+    SHIPPED_BENCHMARKS,
+    STATS_RTOL,
+    WEIGHTS_DIR,
+    data_fingerprint,
+    export_model,
+    find_shipped,
+    fingerprint_differences,
+    is_shipped,
+    list_shipped,
+    shipped_name,
+)
+from dks_gym.names import MODEL_KINDS
+from dks_gym.wrappers import LatentFilter
+
+ROOT = Path(__file__).resolve().parents[1]
+BURGERS_TABLE = ROOT / "docs" / "results" / "burgers-lite-calibrated" / "results.json"
+
+
+def _snapshot(home: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``home`` with its size and modification time."""
+    return {str(p.relative_to(home)): (p.stat().st_size, p.stat().st_mtime_ns) for p in home.rglob("*") if p.is_file()}
+
+
+def test_the_shipped_files_are_small_inference_only_and_portable() -> None:
+    files = list_shipped()
+    names = {item.path.name for item in files}
+    assert {shipped_name("burgers", kind) for kind in MODEL_KINDS} <= names
+    assert names <= {shipped_name(b, k) for b in SHIPPED_BENCHMARKS for k in MODEL_KINDS}
+    assert sum(item.path.stat().st_size for item in files) <= 30 * 2**20
+    for item in files:
+        assert item.path.stat().st_size <= MAX_FILE_BYTES, item.path
+        with safe_open(str(item.path), framework="pt") as f:
+            prefixes = {key.split(".", 1)[0] for key in f.keys()}  # noqa: SIM118
+        assert prefixes == {"model", "calibration"}, (item.path, prefixes)  # no optimizer or training state
+        meta = item.metadata
+        assert meta["complete"] and meta["q_scale"] > 0 and meta["r"] == 32
+        fp = meta["data"]
+        assert fp["preset"] == "paper" and len(fp["train_params_sha256"]) == 64
+        assert len(fp["stats_mean"]) == len(fp["stats_std"]) > 0 and fp["generator_version"]
+        if meta["model"] != "pdmd":
+            assert meta["schedule"]["batch_size"] > 0 and meta["best_validation_loss"] > 0
+        text = json.dumps(meta)
+        assert "/root" not in text and "/home" not in text and "/tmp" not in text, "a machine path in the metadata"
+
+
+def test_fingerprint_tolerance_admits_round_off_and_refuses_other_data(burgers_paper: Path,
+                                                                        burgers_small: Path) -> None:
+    fp = data_fingerprint(Dataset(burgers_paper))
+    assert fingerprint_differences(fp, fp) == []
+    std = np.asarray(fp["stats_std"])
+    close = dict(fp, stats_mean=list(np.asarray(fp["stats_mean"]) + 0.1 * STATS_RTOL * std))
+    assert fingerprint_differences(fp, close) == []
+    far = dict(fp, stats_std=list(std * (1 + 10 * STATS_RTOL)))
+    assert any("standard deviations" in d for d in fingerprint_differences(fp, far))
+    small = fingerprint_differences(fp, data_fingerprint(Dataset(burgers_small)))
+    assert any("preset 'small'" in d for d in small) and "the train split's parameters" in small
+
+
+def test_a_shipped_model_filters_the_paper_data_at_once_and_writes_nothing(burgers_paper: Path,
+                                                                           data_home: Path) -> None:
+    """An empty model cache: the wrapper takes the shipped model, runs an EKF episode, and no file under the
+    data home is created or changed."""
+    assert not list((data_home / "models").glob("*koopman-lite-r32-T1.safetensors"))
+    before = _snapshot(data_home)
+    env = LatentFilter(gym.make("DKS/Burgers-v0"), model="koopman", filter="ekf")
+    assert is_shipped(env.model.checkpoint_path)
+    env.reset(seed=0)
+    done, steps = False, 0
+    while not done:
+        _, reward, terminated, truncated, info = env.step(None)
+        done, steps = terminated or truncated, steps + 1
+    assert steps == 99 and np.isfinite(reward) and 0.5 < info["coverage"] <= 1.0
+    assert _snapshot(data_home) == before
+
+
+def test_other_data_get_a_clear_error_and_nothing_is_written(burgers_small: Path, data_home: Path) -> None:
+    before = _snapshot(data_home)
+    with pytest.raises(CheckpointMissing) as err:
+        LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model="mlp")
+    message = str(err.value)
+    assert "ships with dks-gym was trained on other data" in message and "preset 'small'" in message
+    assert "dks-gym train burgers --model mlp" in message and "--data-preset small" in message
+    assert _snapshot(data_home) == before
+
+
+def test_the_users_own_checkpoint_comes_before_the_shipped_one(burgers_paper: Path, tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """A checkpoint in the data home wins; exporting it writes an inference file with the same outputs."""
+    import torch
+
+    shipped = find_shipped("burgers", "pdmd")
+    home = tmp_path / "home"
+    (home / "models").mkdir(parents=True)
+    monkeypatch.setenv("DKS_GYM_HOME", str(home))
+    ds = Dataset(burgers_paper)
+    exported = export_model(shipped.path, ds, out_dir=home / "models")  # an inference file is a checkpoint too
+    assert exported.read_bytes() == shipped.path.read_bytes()  # and exporting is reproducible byte for byte
+    model = load_model("burgers", "pdmd", dataset=ds)
+    assert model.checkpoint_path == home / "models" / shipped.path.name and not is_shipped(model.checkpoint_path)
+    z = model.encode(torch.as_tensor(ds.frame("test", 0, 5))[None], torch.as_tensor(ds.params("test")[:1]))
+    assert torch.isfinite(z).all()
+
+
+def test_the_shipped_burgers_models_reproduce_the_committed_table(burgers_paper: Path) -> None:
+    """Published checkpoints against the published table: the shipped lite models on freshly generated Burgers
+    paper data give the committed final-time MSE (docs/results/burgers-lite-calibrated, the demo's runs) to
+    3 digits, for the forward run, the EKF and the EnKF (calibrated Q and P0) of every model."""
+    committed = {(r["model"], r["filter"]): r["final_mse_mean"]
+                 for r in json.loads(BURGERS_TABLE.read_text())["records"] if r["experiment"] == "calibrated"}
+    ds = Dataset(burgers_paper)
+    base = AssimilationConfig()
+    got = {}
+    for kind in MODEL_KINDS:
+        model = load_model("burgers", kind, dataset=ds)
+        assert is_shipped(model.checkpoint_path)
+        for filt in ("forward", "ekf", "enkf"):
+            result = run_assimilation(model, ds, base.replace(kind=filt), uncertainty=False)
+            got[(kind, filt)] = float(np.mean(result.step_mse[:, -1]))
+    for key, value in committed.items():
+        assert value == pytest.approx(got[key], rel=1e-3), (key, got[key], value)
+
+
+@pytest.mark.skipif(os.environ.get("DKS_GYM_CHECK_CFD") != "1", reason="set DKS_GYM_CHECK_CFD=1 with CFD paper data")
+@pytest.mark.parametrize("benchmark", ["cylinder", "dambreak"])
+def test_the_shipped_cfd_models_match_their_paper_data(benchmark: str) -> None:
+    from dks_gym.home import dataset_path
+
+    ds = Dataset(dataset_path(benchmark, "paper"))
+    for kind in MODEL_KINDS:
+        shipped = find_shipped(benchmark, kind)
+        assert shipped is not None and shipped.differences(ds) == []
+
+
+def test_weights_folder_is_package_data() -> None:
+    import tomllib
+
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["dks_gym"]
+    assert any(Path(WEIGHTS_DIR.name, "x.safetensors").match(Path(p).relative_to("models").as_posix())
+               for p in data if p.startswith("models/"))
