@@ -174,7 +174,6 @@ _OPTIONAL_PACKAGES = (
     ("distributed", "distributed", "Dask's cluster executor (client.get_executor())", "cluster"),
     ("pydmd", "pydmd", "pDMD latent model", "models"),
     ("xlstm", "xlstm", "xLSTM latent model", "models"),
-    ("pysensors", "python-sensors", "tests: cross-check of the QR/CCQR placement baselines", "dev"),
     ("stable_baselines3", "stable-baselines3", "RL sensor placement agents", "agents"),
 )
 

@@ -1,7 +1,8 @@
 """Wrap DKS/Burgers-v0 with each latent model; print the final-time MSE of forward run, EKF and EnKF (test split).
 
-Runs on a fresh clone: generates the Burgers data if missing (seconds) and trains the lite models if missing
-(minutes on 2 CPU cores, cached in the data home). ``python examples/filter_burgers.py [paper|small]``.
+Runs on a fresh clone: generates the Burgers data if missing (seconds). On the ``paper`` data it uses the lite
+models that ship with dks-gym; on the ``small`` data it trains lite models for them if missing (minutes per model
+on one CPU core, cached in the data home). ``python examples/filter_burgers.py [paper|small]``.
 """
 import sys
 

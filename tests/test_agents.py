@@ -1,6 +1,6 @@
 """Placement policies and the evaluation harness (agents/): valid layouts everywhere, QR and CCQR against
-PySensors (a dev-only cross-check: the package pivots itself), greedy against the filter run independently,
-the monotone covariance objective, PPO smoke runs, the results file."""
+PySensors (its layouts stored by tests/references/make_references.py: the package pivots itself), greedy
+against the filter run independently, the monotone covariance objective, PPO smoke runs, the results file."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from dks_gym_agents.baselines import (
     RandomLayout,
     ccqr_pivots,
     observed_snapshots,
+    pod_modes,
     qr_pivots,
 )
 from dks_gym_agents.policies import PlacementTask, candidate_lattice, check_layout, distinct_picks
@@ -34,6 +35,8 @@ from dks_gym.wrappers import LatentFilter
 
 sys.path.insert(0, str(Path(__file__).parent))
 from conftest import synthetic_data  # noqa: E402
+
+from tests.references.make_references import assert_same_input, load_references  # noqa: E402
 
 CFD = ("cylinder", "dambreak", "sphere")
 
@@ -130,48 +133,51 @@ def test_every_policy_gives_valid_layouts(bench: str, burgers_task, cfd_tasks) -
         assert len(set(row.tolist())) == m and fluid[row].all() and set(row.tolist()) <= set(lattice.tolist())
 
 
+def _burgers_snapshots(ds: Dataset) -> np.ndarray:
+    """All training frames of the Burgers data as a mean-subtracted float64 snapshot matrix (N, 1024)."""
+    fields = np.asarray(ds.fields("train")[:, :, 0], dtype=np.float64)  # (n, n_t, 1024)
+    X = fields.reshape(-1, fields.shape[-1])
+    return X - X.mean(axis=0)
+
+
+# PySensors (python-sensors) is a dev-only cross-check that no extra installs: the layouts it picks on the
+# inputs below are stored by tests/references/make_references.py, which builds those inputs with these helpers.
 def test_qr_equals_pysensors_on_an_independent_svd_basis(burgers_task: PlacementTask) -> None:
     """Our POD (Gram eigendecomposition) + scipy's pivoted QR gives the sensors PySensors picks with its own
-    SVD basis and its QR optimizer."""
-    ps = pytest.importorskip("pysensors")
-
+    SVD basis and its QR optimizer (SSPOR, 16 arpack SVD modes, 16 sensors)."""
+    refs = load_references()
+    assert_same_input(refs, "qr_burgers.input", _burgers_snapshots(burgers_task.dataset))
     qr = QRLayout().fit(burgers_task)
-    fields = np.asarray(burgers_task.dataset.fields("train")[:, :, 0], dtype=np.float64)  # (n, n_t, 1024)
-    X = fields.reshape(-1, fields.shape[-1])
-    X -= X.mean(axis=0)
-    reference = ps.SSPOR(basis=ps.basis.SVD(n_basis_modes=16, algorithm="arpack", random_state=0), n_sensors=16)
-    reference.fit(X, quiet=True)
-    np.testing.assert_array_equal(qr.layout, reference.get_selected_sensors())
+    expected = refs["qr_burgers.sensors"]
+    np.testing.assert_array_equal(qr.layout, expected)
     assert not qr.used_ccqr  # Burgers has no solid cells: plain QR
+    # The check can fail: fewer modes rank other cells.
+    assert not np.array_equal(QRLayout(n_modes=17).fit(burgers_task).layout, expected)
 
 
 def test_ccqr_keeps_qr_out_of_the_body(tmp_path: Path) -> None:
     """Cylinder data whose body cells vary most: plain QR picks body cells, the cost map (CCQR) never does,
     and the layout equals PySensors' CCQR with that cost map on an independent SVD basis."""
-    ps = pytest.importorskip("pysensors")
-
+    refs = load_references()
     ds = Dataset(_noisy_synthetic("cylinder", tmp_path / "cylinder.h5", solid_boost=30.0))
     task = PlacementTask(ds, _untrained("cylinder", ds), AssimilationConfig(n_sensors=8))
     solid = ~task.fluid_mask.ravel()
     X = observed_snapshots(ds).astype(np.float64)
     X -= X.mean(axis=0)
-    unconstrained = ps.SSPOR(basis=ps.basis.SVD(n_basis_modes=8, algorithm="arpack", random_state=0), n_sensors=8)
-    assert solid[unconstrained.fit(X, quiet=True).get_selected_sensors()].any()
+    assert_same_input(refs, "ccqr_cylinder.input", X)
+    unconstrained = refs["ccqr_cylinder.unconstrained"]  # PySensors' SSPOR with no cost map
+    assert solid[unconstrained].any()
+    np.testing.assert_array_equal(qr_pivots(pod_modes(X, 8)[0], 8), unconstrained)  # and ours, the same
     policy = QRLayout().fit(task)
     assert policy.used_ccqr and not solid[policy.layout].any()
-    costs = np.where(solid, 1e6, 0.0)
-    reference = ps.SSPOR(basis=ps.basis.SVD(n_basis_modes=8, algorithm="arpack", random_state=0),
-                         optimizer=ps.optimizers.CCQR(sensor_costs=costs), n_sensors=8)
-    np.testing.assert_array_equal(policy.layout, reference.fit(X, quiet=True).get_selected_sensors())
+    np.testing.assert_array_equal(policy.layout, refs["ccqr_cylinder.sensors"])
 
 
-@pytest.mark.parametrize("case", ["dense", "negative-costs", "forbidden", "exhausted", "preferred-zero-rows"])
-def test_pivots_equal_pysensors_optimizers_on_random_bases(case: str) -> None:
-    """qr_pivots and ccqr_pivots rank every cell PySensors' QR and CCQR optimizers rank, in the same order,
-    on random orthonormal bases: no costs, mixed-sign costs, forbidden cells, a basis whose allowed cells
-    run out (rows exactly zero) before the last pivot, and zero rows that negative costs make pivots (the
-    one case where PySensors' zero-pivot reflector, reproduced as is, changes the later picks)."""
-    ps = pytest.importorskip("pysensors")
+PIVOT_CASES = ("dense", "negative-costs", "forbidden", "exhausted", "preferred-zero-rows")
+
+
+def _pivot_case(case: str) -> tuple[np.ndarray, np.ndarray]:
+    """A random orthonormal basis (300, 12) and a cost map (300,) for one case of the pivoting cross-check."""
     rng = np.random.default_rng(1)
     n, r = 300, 12
     basis = np.linalg.qr(rng.standard_normal((n, r)))[0]
@@ -189,14 +195,28 @@ def test_pivots_equal_pysensors_optimizers_on_random_bases(case: str) -> None:
         zero = rng.choice(n, 3, replace=False)
         basis[zero] = 0.0
         costs[zero] = -0.5  # preferred cells that carry nothing: they are picked with a zero residual
-    expected = ps.optimizers.CCQR(sensor_costs=costs).fit(basis).get_sensors()[:r]
+    return basis, costs
+
+
+@pytest.mark.parametrize("case", PIVOT_CASES)
+def test_pivots_equal_pysensors_optimizers_on_random_bases(case: str) -> None:
+    """qr_pivots and ccqr_pivots rank every cell PySensors' QR and CCQR optimizers rank, in the same order,
+    on random orthonormal bases: no costs, mixed-sign costs, forbidden cells, a basis whose allowed cells
+    run out (rows exactly zero) before the last pivot, and zero rows that negative costs make pivots (the
+    one case where PySensors' zero-pivot reflector, reproduced as is, changes the later picks)."""
+    refs = load_references()
+    basis, costs = _pivot_case(case)
+    n, r = basis.shape
+    assert_same_input(refs, f"pivots.{case}.basis", basis)
+    assert_same_input(refs, f"pivots.{case}.costs", costs)
+    expected = refs[f"pivots.{case}.ccqr"]  # PySensors' CCQR(sensor_costs=costs), the first r pivots
     ours = ccqr_pivots(basis, costs, r)
     np.testing.assert_array_equal(ours, expected)
     for k in (1, 5, r):  # the greedy prefix does not depend on where it stops
         np.testing.assert_array_equal(ccqr_pivots(basis, costs, k), expected[:k])
     if case == "dense":
-        np.testing.assert_array_equal(ours, ps.optimizers.QR().fit(basis).get_sensors()[:r])  # no cost: plain QR
-        np.testing.assert_array_equal(qr_pivots(basis, r), ps.optimizers.QR().fit(basis).get_sensors()[:r])
+        np.testing.assert_array_equal(ours, refs[f"pivots.{case}.qr"])  # no cost: PySensors' plain QR
+        np.testing.assert_array_equal(qr_pivots(basis, r), refs[f"pivots.{case}.qr"])
     if case == "forbidden":
         assert (costs[ours] == 0).all()
         assert not np.array_equal(ours, qr_pivots(basis, r))  # the costs matter: this check can fail

@@ -114,7 +114,7 @@ def test_doctor_reports_tools_and_packages(monkeypatch: pytest.MonkeyPatch) -> N
     result = CliRunner().invoke(main, ["doctor"])
     assert result.exit_code == 0, result.output
     for item in ("OpenFOAM", "blockMesh", "interFoam", "pimpleFoam", "CUDA", "fluidfoam", "dask", "distributed",
-                 "xlstm", "pydmd", "python-sensors", "stable-baselines3"):  # fmt: skip
+                 "xlstm", "pydmd", "stable-baselines3"):  # fmt: skip
         assert item in result.output, item
     if HAVE_OPENFOAM:
         assert "OpenFOAM v" in result.output and "MISSING" not in result.output.split("torch")[0]

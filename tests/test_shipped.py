@@ -13,7 +13,6 @@ import pytest
 from safetensors import safe_open
 
 import dks_gym  # noqa: F401  (registers the env ids)
-from dks_gym.assimilation import AssimilationConfig, run_assimilation
 from dks_gym.dataset import Dataset
 from dks_gym.models import CheckpointMissing, load_model
 from dks_gym.models.shipped import (
@@ -121,23 +120,24 @@ def test_the_users_own_checkpoint_comes_before_the_shipped_one(burgers_paper: Pa
     assert torch.isfinite(z).all()
 
 
-def test_the_shipped_burgers_models_reproduce_the_committed_table(burgers_paper: Path) -> None:
-    """Published checkpoints against the published table: the shipped lite models on freshly generated Burgers
-    paper data give the committed final-time MSE (docs/results/burgers-lite-calibrated, the demo's runs) to
-    3 digits, for the forward run, the EKF and the EnKF (calibrated Q and P0) of every model."""
+def test_the_demo_with_the_shipped_burgers_models_reproduces_the_committed_table(burgers_paper: Path, tmp_path: Path,
+                                                                                capsys: pytest.CaptureFixture) -> None:
+    """Published checkpoints against the published table: `dks-gym demo` with the shipped lite models on freshly
+    generated Burgers paper data gives the committed final-time MSE (docs/results/burgers-lite-calibrated,
+    experiment `calibrated`: forward run, EKF and EnKF of every model, calibrated Q and P0) to 3 digits, says
+    that it used the shipped models, and writes nothing into the data home but its own output folder."""
+    from dks_gym.evaluation.demo import run_demo
+
     committed = {(r["model"], r["filter"]): r["final_mse_mean"]
                  for r in json.loads(BURGERS_TABLE.read_text())["records"] if r["experiment"] == "calibrated"}
-    ds = Dataset(burgers_paper)
-    base = AssimilationConfig()
-    got = {}
-    for kind in MODEL_KINDS:
-        model = load_model("burgers", kind, dataset=ds)
-        assert is_shipped(model.checkpoint_path)
-        for filt in ("forward", "ekf", "enkf"):
-            result = run_assimilation(model, ds, base.replace(kind=filt), uncertainty=False)
-            got[(kind, filt)] = float(np.mean(result.step_mse[:, -1]))
+    doc = run_demo(tmp_path / "demo", progress=False)
+    got = {(r["model"], r["filter"]): r["final_mse_mean"] for r in doc["records"]}
+    assert set(got) == set(committed)
     for key, value in committed.items():
-        assert value == pytest.approx(got[key], rel=1e-3), (key, got[key], value)
+        assert got[key] == pytest.approx(value, rel=1e-3), (key, got[key], value)
+    assert doc["config"]["shipped_models"] == list(MODEL_KINDS)
+    out = capsys.readouterr().out
+    assert "shipped with dks-gym" in out and "Koopman" in out and (tmp_path / "demo" / "demo.png").exists()
 
 
 @pytest.mark.skipif(os.environ.get("DKS_GYM_CHECK_CFD") != "1", reason="set DKS_GYM_CHECK_CFD=1 with CFD paper data")
@@ -157,3 +157,18 @@ def test_weights_folder_is_package_data() -> None:
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["dks_gym"]
     assert any(Path(WEIGHTS_DIR.name, "x.safetensors").match(Path(p).relative_to("models").as_posix())
                for p in data if p.startswith("models/"))
+
+
+def test_models_command_lists_the_shipped_files_and_whether_the_data_match(burgers_paper: Path) -> None:
+    from click.testing import CliRunner
+
+    from dks_gym.cli import main
+
+    result = CliRunner().invoke(main, ["models"])
+    assert result.exit_code == 0, result.output
+    rows = {line.split()[0]: line for line in result.output.splitlines()[1:] if line.strip()}
+    for kind in MODEL_KINDS:
+        assert rows[shipped_name("burgers", kind)].rstrip().endswith("match")
+    for name, line in rows.items():
+        if not name.startswith("burgers"):
+            assert "no data (`dks-gym data generate" in line or "match" in line
