@@ -58,7 +58,10 @@ def dataset(home: Path) -> Dataset:
 
 @pytest.fixture(scope="module")
 def models(dataset: Dataset) -> dict:
-    """Lite r = 32 models briefly trained into the module's data home (the checkpoints reproduce reuses)."""
+    """Lite r = 32 models briefly trained into the module's data home (the checkpoints reproduce reuses).
+
+    The module's one long setup (about 25 s on one core): reproduce, its resumption and the batched runs are
+    checked on models that left their initialization, trained once for the whole module."""
     out = {}
     for kind in ("koopman", "mlp", "xlstm", "pdmd"):
         out[kind] = train_model("burgers", kind, 32, "lite", 1, dataset=dataset, steps=TRAIN_STEPS.get(kind),

@@ -13,6 +13,7 @@ import pytest
 from safetensors import safe_open
 
 import dks_gym  # noqa: F401  (registers the env ids)
+from dks_gym.assimilation import AssimilationConfig, run_assimilation
 from dks_gym.dataset import Dataset
 from dks_gym.models import CheckpointMissing, load_model
 from dks_gym.models.shipped import (
@@ -143,15 +144,32 @@ def test_the_demo_with_the_shipped_burgers_models_reproduces_the_committed_table
     assert "shipped with dks-gym" in out and "Koopman" in out and (tmp_path / "demo" / "demo.png").exists()
 
 
-@pytest.mark.skipif(os.environ.get("DKS_GYM_CHECK_CFD") != "1", reason="set DKS_GYM_CHECK_CFD=1 with CFD paper data")
-@pytest.mark.parametrize("benchmark", ["cylinder", "dambreak"])
-def test_the_shipped_cfd_models_match_their_paper_data(benchmark: str) -> None:
-    from dks_gym.home import dataset_path
+CFD_HOME = Path(os.environ.get("DKS_GYM_CFD_HOME", "/nonexistent"))
 
-    ds = Dataset(dataset_path(benchmark, "paper"))
+
+@pytest.mark.parametrize("benchmark", ["cylinder", "dambreak"])
+def test_the_shipped_cfd_models_start_at_once_and_reproduce_the_committed_koopman_ekf(benchmark: str) -> None:
+    """With a CFD benchmark's paper data (generated with OpenFOAM, 10-60 min: a data home named by
+    DKS_GYM_CFD_HOME), each kind's LatentFilter starts on the shipped model, and the Koopman EKF with the
+    paper's Q and P0 reproduces the committed final-time MSE (docs/results/BENCHMARK, experiment `main`)."""
+    path = CFD_HOME / "data" / f"{benchmark}-paper.h5"
+    if not path.exists():
+        pytest.skip(f"set DKS_GYM_CFD_HOME to a data home holding data/{benchmark}-paper.h5")
+    from dks_gym.assimilation.config import PAPER_P0, PAPER_Q
+
+    ds = Dataset(path)
     for kind in MODEL_KINDS:
         shipped = find_shipped(benchmark, kind)
-        assert shipped is not None and shipped.differences(ds) == []
+        assert shipped is not None and shipped.differences(ds) == [], (kind, shipped and shipped.differences(ds))
+        env = LatentFilter(gym.make(f"DKS/{benchmark.capitalize()}-v0", data_path=path), model=kind)
+        assert is_shipped(env.model.checkpoint_path)
+    committed = next(r["final_mse_mean"] for r in json.loads((ROOT / "docs" / "results" / benchmark /
+                                                              "results.json").read_text())["records"]
+                     if (r["experiment"], r["model"], r["filter"], r["initial"], r["r"], r["T"])
+                     == ("main", "koopman", "ekf", "approximate", 32, 1))
+    config = AssimilationConfig().replace(kind="ekf", Q=PAPER_Q, P0=PAPER_P0)
+    result = run_assimilation(load_model(benchmark, "koopman", dataset=ds), ds, config, uncertainty=False)
+    assert float(np.mean(result.step_mse[:, -1])) == pytest.approx(committed, rel=1e-3)
 
 
 def test_weights_folder_is_package_data() -> None:

@@ -470,12 +470,14 @@ def test_filter_burgers_example_runs_from_an_empty_data_home(tmp_path: Path, mon
     data, trains the four models and prints forward/EKF/EnKF final-time MSE for each (~15 s)."""
     import importlib.util
 
+    from dks_gym.assimilation import tuning
     from dks_gym.benchmarks import burgers
     from dks_gym.models import training
 
     monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path / "home"))
     monkeypatch.setitem(burgers.PRESET_COUNTS, "small", (4, 1))  # 1 test trajectory: 12 runs of 99 steps
     monkeypatch.setitem(training.TRAINING_SCHEDULES["lite"], "burgers", training.TrainingSchedule(20, 8, 1e-3))
+    monkeypatch.setattr(tuning, "BISECTIONS", 1)  # train_if_missing=True tunes each model too: 2 runs, not 7
     path = Path(__file__).parents[1] / "examples" / "filter_burgers.py"
     spec = importlib.util.spec_from_file_location("filter_burgers_example", path)
     module = importlib.util.module_from_spec(spec)
