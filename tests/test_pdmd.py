@@ -621,6 +621,9 @@ def test_small_preset_forward_runs_are_bounded(benchmark, data_home):
     over the whole range (cylinder Re 178, 440, 956), so their forward runs carry an interpolation error of
     10 to 20 % (physical units differ by channel: dambreak pressures are ~1e3 Pa); the bound there is a
     relative L2 error of the final frame below 0.25 (the old cylinder fit reached 9.5, ||A~|| 288).
+
+    The sphere case is long (about 25 s on one core): it generates the 64^3 small preset with the lattice
+    Boltzmann solver and fits on it, the only check of pDMD's streamed POD on a 3D field.
     """
     from dks_gym.dataset import generate_dataset, load_dataset
 

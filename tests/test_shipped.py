@@ -129,7 +129,7 @@ def test_the_demo_with_the_shipped_burgers_models_reproduces_the_committed_table
     """Published checkpoints against the published table: `dks-gym demo` with the shipped lite models on freshly
     generated Burgers paper data gives the committed final-time MSE (docs/results/burgers-lite-calibrated,
     experiment `calibrated`: forward run, EKF and EnKF of every model, calibrated Q and P0) to 3 digits, says
-    that it used the shipped models, and writes nothing into the data home but its own output folder."""
+    that it used the shipped models. About 35 s on one core: the demo's twelve runs are the table."""
     from dks_gym.evaluation.demo import run_demo
 
     committed = {(r["model"], r["filter"]): r["final_mse_mean"]

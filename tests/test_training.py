@@ -35,7 +35,9 @@ def ds(burgers_small) -> Dataset:
 
 @pytest.fixture(scope="module")
 def trained(ds, tmp_path_factory):
-    """A short lite training of every model (pDMD: its fit), written to a private directory."""
+    """A short lite training of every model (pDMD: its fit), written to a private directory.
+
+    The module's one long setup (about 20 s on one core): every test here reads these four checkpoints."""
     out = tmp_path_factory.mktemp("checkpoints")
     return {
         kind: train_model("burgers", kind, R, "lite", dataset=ds, steps=STEPS, batch_size=32, progress=False,
