@@ -193,3 +193,40 @@ def test_models_command_lists_the_shipped_files_and_whether_the_data_match(burge
     for name, line in rows.items():
         if not name.startswith("burgers"):
             assert "no data (`dks-gym data generate" in line or "match" in line
+
+
+def test_calibrate_command_tunes_a_checkpoint_and_export_refuses_an_untuned_one(
+        burgers_small: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A checkpoint fresh from train_model has no Q scale: exporting it is refused with the command to run;
+    `dks-gym calibrate` tunes it into the checkpoint, and a filter on it then runs without the warning."""
+    import shutil
+    import warnings
+
+    from click.testing import CliRunner
+
+    from dks_gym.assimilation import tuning
+    from dks_gym.cli import main
+    from dks_gym.models import train_model
+    from dks_gym.models.checkpoint import calibration_names
+
+    home = tmp_path / "home"
+    (home / "data").mkdir(parents=True)
+    shutil.copy(burgers_small, home / "data" / burgers_small.name)
+    monkeypatch.setenv("DKS_GYM_HOME", str(home))
+    monkeypatch.setattr(tuning, "BISECTIONS", 1)
+    ds = Dataset(home / "data" / burgers_small.name)
+    path = train_model("burgers", "koopman", 32, "lite", 1, dataset=ds, steps=20, progress=False).path
+    assert "Q_scale" not in calibration_names(path)
+    with pytest.raises(ValueError, match="dks-gym calibrate burgers --model koopman"):
+        export_model(path, ds, out_dir=tmp_path / "out")
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
+    result = CliRunner().invoke(main, ["calibrate", "burgers", "--model", "koopman", "--data-preset", "small",
+                                       "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert "process-noise scale" in result.output and "Q_scale" in calibration_names(path)
+    model = load_model("burgers", "koopman", dataset=ds)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a tuned model runs without the "no tuned scale" warning
+        env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model)
+        env.reset(seed=0)
+        env.step(None)
