@@ -15,6 +15,7 @@ from torch import nn
 from .koopman import KoopmanOperator
 from .latent_model import ArrayLike, KoopmanModel, LatentModel, NeuralLatentModel
 from .mlp import MLPTransition
+from .pdmd import BENCHMARK_SETTINGS as PDMD_BENCHMARK_SETTINGS
 from .pdmd import PDMD
 from .presets import (
     KOOPMAN_HIDDEN_LAYERS,
@@ -77,7 +78,8 @@ def build_model(
         stats_std = dataset.stats_std if stats_std is None else stats_std
         cell_type = dataset.cell_type if cell_type is None else cell_type
     if model == PDMD.kind:
-        return PDMD(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std).eval()
+        settings = PDMD_BENCHMARK_SETTINGS.get(shape.name, {})  # regularization a benchmark's data need
+        return PDMD(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std, **settings).eval()
     cls, latent_map = NEURAL_MAPS[model]
     devices: Sequence[Any] = []
     with torch.random.fork_rng(devices=devices):
