@@ -23,10 +23,7 @@ training and by ``dks-gym calibrate``, never by the loop itself).
 
 from __future__ import annotations
 
-import math
-import sys
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -36,7 +33,7 @@ import torch
 
 from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
-from .config import AssimilationConfig, FilterConfig
+from .config import AssimilationConfig
 from .core import Assimilation, field_errors
 
 
