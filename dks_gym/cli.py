@@ -352,7 +352,7 @@ def models_command(check_data: bool) -> None:
         click.echo("no shipped models in this installation")
         return
     datasets: dict[tuple[str, str], Any] = {}
-    click.echo(f"{'file':<42}{'size':>8}  {'Q scale':>8}  local data")
+    click.echo(f"{'file':<42}{'size':>9}  {'Q scale':>8}  local data")
     for item in shipped:
         fp = item.fingerprint
         key = (fp["benchmark"], fp["preset"])
@@ -368,9 +368,9 @@ def models_command(check_data: bool) -> None:
                 diff = fingerprint_differences(fp, data_fingerprint(ds))
                 status = "match" if not diff else "DIFFERENT: " + "; ".join(diff)
         scale = item.metadata.get("q_scale")
-        size = f"{item.path.stat().st_size / 2**20:.1f} MB"
+        size = f"{item.path.stat().st_size / 2**20:.1f} MiB"
         scale = "-" if scale is None else f"{scale:.3g}"
-        click.echo(f"{item.path.name:<42}{size:>8}  {scale:>8}  {status}")
+        click.echo(f"{item.path.name:<42}{size:>9}  {scale:>8}  {status}")
     for ds in datasets.values():
         if ds is not None:
             ds.close()
