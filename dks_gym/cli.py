@@ -287,8 +287,9 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
                      f"{' (stopped early)' if result.stopped_early else ''}")
         click.echo(f"{line} -> {result.path}")
         tune_if_missing(result.model, ds, progress=progress)
-        click.echo(f"  process-noise scale {float(result.model.calibration['Q_scale']):.3g} "
-                   "(the EKF's 95 % intervals cover 95 % of the held-out frames)")
+        if "Q_scale" in result.model.calibration:  # absent only without a calibrated Q (an older checkpoint)
+            click.echo(f"  process-noise scale {float(result.model.calibration['Q_scale']):.3g} "
+                       "(the EKF's 95 % intervals cover 95 % of the held-out frames)")
         if export:
             try:
                 click.echo(f"  exported -> {export_model(result.path, ds)}")

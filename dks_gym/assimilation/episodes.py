@@ -344,20 +344,3 @@ def run_dataset(model: Any, dataset: Dataset, trajectories: np.ndarray, noise_se
         close_envs(envs)
     result.wall_time = time.perf_counter() - start
     return result
-
-
-# The scale of the calibrated process noise ------------------------------------------------------------
-# Chosen so that the EKF's 95 % intervals hold 95 % of the truth, by running this module's loop. The
-# calibrated ``Q`` (:func:`dks_gym.models.calibrate`) is the covariance of a model's latent one-step
-# residuals. A filter that assumes it is too sure of itself when the model's errors are correlated in time
-# (a systematic drift, not white noise): its latent covariance grows slower than its error, and the decoded
-# ``estimate_std`` is too small. On the Burgers lite models (docs/filters.md) the mean NEES per cell over the
-# held-out trajectories was 1.05 for the Koopman model, 6.3 for the MLP and 4.7 for the xLSTM.
-#
-# :func:`tune_process_noise` runs the EKF with ``s * Q`` on the trajectories the model was calibrated on
-# (held out from its training; pDMD's are its training ones), at the env's default sensing (16 sensors of the
-# paper's layout, 20 % noise), and bisects ``log s`` until the fraction of scored cells inside the central
-# 95 % interval, over every frame after the first, equals ``target``. The scale is stored as
-# ``model.calibration["Q_scale"]`` (and in the model's checkpoint) and multiplies ``Q`` wherever
-# ``Q="calibrated"`` is resolved. Like every calibration it is measured at one sensing setting; other layouts
-# and noise levels get the same scale.

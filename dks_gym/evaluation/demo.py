@@ -108,7 +108,7 @@ def run_demo(
         else:
             models[kind] = load_model(DEMO_BENCHMARK, kind, r=32, preset="lite", dataset=ds, device=device,
                                       progress=progress)
-    shipped = [MODEL_LABELS[k] for k, m in models.items() if is_shipped(getattr(m, "checkpoint_path", None))]
+    shipped = [k for k, m in models.items() if is_shipped(getattr(m, "checkpoint_path", None))]
     trained = time.perf_counter()
 
     records = []
@@ -129,7 +129,7 @@ def run_demo(
               "scored_channels": list(ds.scored_channels), "device": device, "dtype": "float32",
               "data_preset": ds.preset, "dks_gym_version": __version__, "torch_version": torch.__version__,
               "wall_time_s": time.perf_counter() - start, "setup_time_s": trained - start,
-              "shipped_models": [k for k, m in models.items() if is_shipped(getattr(m, "checkpoint_path", None))]}
+              "shipped_models": shipped}
     doc = new_results(DEMO_BENCHMARK, "lite", dataset_identity(ds), config, records)
     save_results(doc, out / "results.json")
 
@@ -146,7 +146,7 @@ def run_demo(
     log(demo_table(records))
     log("")
     if shipped:
-        log(f"models: shipped with dks-gym ({', '.join(shipped)}); train your own with `dks-gym demo --train` "
+        log(f"models: shipped with dks-gym ({', '.join(MODEL_LABELS[k] for k in shipped)}); train your own with `dks-gym demo --train` "
             "or `dks-gym train burgers`")
     log(f"figure: {figure}\nresults: {out / 'results.json'}\n"
         f"total {time.perf_counter() - start:.0f} s (data and models {trained - start:.0f} s). "

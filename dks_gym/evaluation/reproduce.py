@@ -193,20 +193,11 @@ def _key(experiment: str, run: Run) -> tuple:
 
 
 def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Any) -> bool:
-    """Whether ``load_model`` finds model ``key`` (kind, r, T) without training: in the data home, complete and
-    trained with the preset's current schedule, or shipped with dks-gym for this dataset."""
-    from ..models.checkpoint import checkpoint_path, read_metadata
-    from ..models.shipped import find_shipped
-    from ..models.training import is_stale
+    """Whether ``load_model`` finds model ``key`` (kind, r, T) without training (:func:`locate_model`)."""
+    from ..models.training import locate_model
 
     kind, r, T = key
-    path = checkpoint_path(benchmark, kind, preset, r, T, data_preset=dataset.preset or "custom")
-    if path.exists():
-        meta = read_metadata(path)
-        if meta.get("complete") and not is_stale(meta, benchmark, kind, preset):
-            return True
-    shipped = find_shipped(benchmark, kind, preset, r, T)
-    return shipped is not None and not shipped.differences(dataset)
+    return locate_model(benchmark, kind, r, preset, T, dataset=dataset).found is not None
 
 
 def _save(previous: dict[str, Any] | None, benchmark: str, preset: str, identity: dict[str, Any],

@@ -656,6 +656,55 @@ def is_stale(meta: dict[str, Any], benchmark: str, model: str, preset: str) -> b
             and meta.get("preset_schedule") != training_schedule(benchmark, preset).record())
 
 
+@dataclass(frozen=True)
+class ModelLookup:
+    """Where :func:`load_model` finds a trained model without training, and what to say when it does not."""
+
+    found: Path | None  # the file to load: the user's checkpoint or the shipped one; None when neither serves
+    checkpoint: Path  # the user's checkpoint path (where training writes)
+    reason: str  # why nothing was found (empty when found)
+    command: str  # the `dks-gym train` command that makes it
+    stale: bool  # the user's checkpoint exists but was trained with another schedule
+
+
+def locate_model(benchmark: Any, model: str, r: int = 32, preset: str = "lite", T: int = 1, *, dataset: Any = None,
+                 data_preset: str = "paper", path: Path | str | None = None) -> ModelLookup:
+    """The lookup of :func:`load_model`, without loading or training: the user's own complete checkpoint
+    (``path``, or the data home's), else the shipped model when ``dataset`` matches its training data.
+    Raises ValueError for a checkpoint of another benchmark, r, preset, T or dataset."""
+    name = benchmark_shape(benchmark).name
+    check_model_args(model, preset, r, T)
+    if dataset is not None and dataset.benchmark.name != name:
+        raise ValueError(f"dataset {dataset.path} is for {dataset.benchmark.name}, not {name}")
+    data_preset = (dataset.preset or "custom") if dataset is not None else data_preset
+    cached = path is None  # the data home's checkpoint must follow the preset; an explicit path is taken as is
+    path = Path(path) if path is not None else checkpoint_path(name, model, preset, r, T, data_preset=data_preset)
+    command = train_command(name, model, preset, r, T, data_preset)
+    stale = False
+    if path.exists():
+        meta = read_metadata(path)
+        check_metadata(meta, path, benchmark=name, model=model, r=r, preset=preset, T=T, dataset=dataset)
+        stale = cached and is_stale(meta, name, model, preset)
+        if meta.get("complete") and not stale:
+            return ModelLookup(path, path, "", command, False)
+        if stale:  # trained by an older dks-gym, or with other settings than the preset's
+            reason = (f"{path} was trained with another schedule than the current {preset} preset's "
+                      f"({meta.get('steps_done')} steps; schedule {meta.get('schedule')})")
+            command += " --restart"
+        else:
+            reason = f"training in {path} stopped at step {meta.get('steps_done')} of {meta.get('steps')}"
+    else:
+        reason = f"no trained {name} {model} model (preset {preset}, r={r}, T={T}) at {path}"
+    shipped = find_shipped(name, model, preset, r, T) if cached else None
+    if shipped is not None:
+        differences = [] if dataset is None else shipped.differences(dataset)
+        if not differences:
+            return ModelLookup(shipped.path, path, "", command, stale)
+        reason += (f"; the {name} {model} model that ships with dks-gym was trained on other data than "
+                   f"{dataset.path}: {'; '.join(differences)}")
+    return ModelLookup(None, path, reason, command, stale)
+
+
 def load_model(
     benchmark: Any,
     model: str,
@@ -684,35 +733,11 @@ def load_model(
     ValueError. Nothing is written unless ``train_if_missing`` trains.
     """
     name = benchmark_shape(benchmark).name
-    check_model_args(model, preset, r, T)
-    if dataset is not None and dataset.benchmark.name != name:
-        raise ValueError(f"dataset {dataset.path} is for {dataset.benchmark.name}, not {name}")
+    lookup = locate_model(name, model, r, preset, T, dataset=dataset, data_preset=data_preset, path=path)
+    if lookup.found is not None:
+        return model_from_checkpoint(lookup.found, _device(device))
     data_preset = (dataset.preset or "custom") if dataset is not None else data_preset
-    cached = path is None  # the data home's checkpoint must follow the preset; an explicit path is taken as is
-    path = Path(path) if path is not None else checkpoint_path(name, model, preset, r, T, data_preset=data_preset)
-    command = train_command(name, model, preset, r, T, data_preset)
-    stale = False
-    if path.exists():
-        meta = read_metadata(path)
-        check_metadata(meta, path, benchmark=name, model=model, r=r, preset=preset, T=T, dataset=dataset)
-        stale = cached and is_stale(meta, name, model, preset)
-        if meta.get("complete") and not stale:
-            return model_from_checkpoint(path, _device(device))
-        if stale:  # trained by an older dks-gym, or with other settings than the preset's
-            reason = (f"{path} was trained with another schedule than the current {preset} preset's "
-                      f"({meta.get('steps_done')} steps; schedule {meta.get('schedule')})")
-            command += " --restart"
-        else:
-            reason = f"training in {path} stopped at step {meta.get('steps_done')} of {meta.get('steps')}"
-    else:
-        reason = f"no trained {name} {model} model (preset {preset}, r={r}, T={T}) at {path}"
-    shipped = find_shipped(name, model, preset, r, T) if cached else None
-    if shipped is not None:
-        differences = [] if dataset is None else shipped.differences(dataset)
-        if not differences:
-            return model_from_checkpoint(shipped.path, _device(device))
-        reason += (f"; the {name} {model} model that ships with dks-gym was trained on other data than "
-                   f"{dataset.path}: {'; '.join(differences)}")
+    path, reason, command, stale = lookup.checkpoint, lookup.reason, lookup.command, lookup.stale
     if not train_if_missing:
         raise CheckpointMissing(
             f"{reason}. Train it with `{command}`{'' if stale else ' (it resumes an unfinished run)'}, or call "
