@@ -18,31 +18,29 @@ from typing import Any
 
 from ..benchmarks import get_benchmark
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart
-from .results import make_record, new_results, save_results
+from .formatting import MISSING, fixed, mean_std, text_table
+from .results import Record, make_record, new_results, save_results
 
 DEMO_BENCHMARK = "burgers"
 DEMO_FILTERS = ("forward", "ekf", "enkf")
-def _fmt(mean: float | None, std: float | None) -> str:
-    if mean is None:
-        return "diverged"
-    return f"{mean:.2e} ± {std:.1e}" if std is not None else f"{mean:.2e}"
 
 
-def demo_table(records: list[dict[str, Any]]) -> str:
+def demo_table(records: list[Record]) -> str:
     """The demo's plain-text table: final MSE per model and filter, max ||F_k||, time per EKF step."""
-    head = f"{'model':<9}{'forward run':>22}{'EKF':>22}{'EnKF (n=20)':>22}{'max|F| EKF':>12}{'EKF ms/step':>13}"
-    lines = [head, "-" * len(head)]
+    rows = []
     for model in MODEL_ORDER:
         recs = {r["filter"]: r for r in records if r["model"] == model}
         if not recs:
             continue
-        cells = [_fmt(recs[f]["final_mse_mean"], recs[f]["final_mse_std"]) if f in recs else "-" for f in DEMO_FILTERS]
+        cells = [mean_std(recs[f]["final_mse_mean"], recs[f]["final_mse_std"], missing="diverged")
+                 if f in recs else MISSING for f in DEMO_FILTERS]
         ekf = recs.get("ekf")
         norms = [v for v in (ekf or {}).get("max_forecast_norm") or [] if v is not None]
-        norm = f"{max(norms):.3f}" if norms else "-"
-        ms = f"{1e3 * ekf['da_step_seconds']:.1f}" if ekf and ekf["da_step_seconds"] is not None else "-"
-        lines.append(f"{MODEL_LABELS[model]:<9}{cells[0]:>22}{cells[1]:>22}{cells[2]:>22}{norm:>12}{ms:>13}")
-    return "\n".join(lines)
+        seconds = ekf["da_step_seconds"] if ekf and ekf["da_step_seconds"] is not None else None
+        rows.append([MODEL_LABELS[model], *cells, fixed(max(norms) if norms else None, 3),
+                     fixed(None if seconds is None else 1e3 * seconds, 1)])
+    return text_table(["model", "forward run", "EKF", "EnKF (n=20)", "max|F| EKF", "EKF ms/step"], rows,
+                      [9, 22, 22, 22, 12, 13])
 
 
 def first_run_message(train: bool = False) -> str:
@@ -70,6 +68,38 @@ def first_run_message(train: bool = False) -> str:
     return f"dks-gym demo: {' and '.join(todo) + ', then ' if todo else ''}{run} with {models}."
 
 
+def _demo_models(ds: Any, *, train: bool, device: str, progress: bool) -> dict[str, Any]:
+    """The four lite models: the user's or the shipped ones, or (``train``) trained and tuned into the data home,
+    resuming or reusing what is there (``dks-gym train``'s path)."""
+    from ..assimilation import tune_if_missing
+    from ..models import load_model, train_model
+
+    models = {}
+    for kind in MODEL_ORDER:
+        if train:
+            models[kind] = train_model(DEMO_BENCHMARK, kind, 32, "lite", 1, dataset=ds, device=device,
+                                       progress=progress).model
+            tune_if_missing(models[kind], ds, progress=progress)
+        else:
+            models[kind] = load_model(DEMO_BENCHMARK, kind, r=32, preset="lite", dataset=ds, device=device,
+                                      progress=progress)
+    return models
+
+
+def _demo_config(ds: Any, base: Any, device: str) -> dict[str, Any]:
+    """The results file's shared config: the filter settings, the data and the versions."""
+    import torch
+
+    from ..version import __version__
+
+    return {"experiments": ["demo"], "n_sensors": base.n_sensors, "P0": base.filter.P0, "Q": base.filter.Q,
+            "noise_seed": base.noise_seed, "filter_seed": base.filter.seed,
+            "split": "test", "n_test": ds.n_trajectories("test"), "n_frames": ds.n_frames, "dt": ds.dt,
+            "t0": float(ds.time[0]), "param_name": ds.param_name, "observed_channel": ds.observed_channel,
+            "scored_channels": list(ds.scored_channels), "device": device, "dtype": "float32",
+            "data_preset": ds.preset, "dks_gym_version": __version__, "torch_version": torch.__version__}
+
+
 def run_demo(
     out: str | Path | None = None,
     *,
@@ -81,16 +111,13 @@ def run_demo(
     """Run the demo (see the module docstring); return the results document written to ``out/results.json``
     (``out`` defaults to ``$DKS_GYM_HOME/demo``). ``train``: train and tune the models into the data home
     (resuming or reusing what is there) instead of taking the shipped ones."""
-    import torch
     from tqdm.auto import tqdm
 
-    from ..version import __version__
+    from ..assimilation import AssimilationConfig, run_assimilation
     from ..dataset import DatasetMissing, generate_dataset, load_dataset
-    from ..models import load_model, train_model
+    from ..home import data_home
     from ..models.checkpoint import dataset_identity
     from ..models.shipped import is_shipped
-    from ..assimilation import AssimilationConfig, run_assimilation, tune_if_missing
-    from ..home import data_home
 
     start = time.perf_counter()
     out = data_home() / "demo" if out is None else Path(out)
@@ -99,15 +126,7 @@ def run_demo(
         ds = load_dataset(DEMO_BENCHMARK, "paper")
     except DatasetMissing:
         ds = load_dataset(DEMO_BENCHMARK, "paper", generate_dataset(DEMO_BENCHMARK, "paper", progress=progress))
-    models = {}
-    for kind in MODEL_ORDER:
-        if train:  # into the data home, resuming or reusing what is there, then tuned (dks-gym train's path)
-            models[kind] = train_model(DEMO_BENCHMARK, kind, 32, "lite", 1, dataset=ds, device=device,
-                                       progress=progress).model
-            tune_if_missing(models[kind], ds, progress=progress)
-        else:
-            models[kind] = load_model(DEMO_BENCHMARK, kind, r=32, preset="lite", dataset=ds, device=device,
-                                      progress=progress)
+    models = _demo_models(ds, train=train, device=device, progress=progress)
     shipped = [k for k, m in models.items() if is_shipped(getattr(m, "checkpoint_path", None))]
     trained = time.perf_counter()
 
@@ -122,14 +141,8 @@ def run_demo(
         records.append(make_record(result, experiment="demo", keep_curves=False))
     bar.close()
 
-    config = {"experiments": ["demo"], "n_sensors": base.n_sensors, "P0": base.filter.P0, "Q": base.filter.Q,
-              "noise_seed": base.noise_seed, "filter_seed": base.filter.seed,
-              "split": "test", "n_test": ds.n_trajectories("test"), "n_frames": ds.n_frames, "dt": ds.dt,
-              "t0": float(ds.time[0]), "param_name": ds.param_name, "observed_channel": ds.observed_channel,
-              "scored_channels": list(ds.scored_channels), "device": device, "dtype": "float32",
-              "data_preset": ds.preset, "dks_gym_version": __version__, "torch_version": torch.__version__,
-              "wall_time_s": time.perf_counter() - start, "setup_time_s": trained - start,
-              "shipped_models": shipped}
+    config = dict(_demo_config(ds, base, device), wall_time_s=time.perf_counter() - start,
+                  setup_time_s=trained - start, shipped_models=shipped)
     doc = new_results(DEMO_BENCHMARK, "lite", dataset_identity(ds), config, records)
     save_results(doc, out / "results.json")
 
@@ -146,8 +159,8 @@ def run_demo(
     log(demo_table(records))
     log("")
     if shipped:
-        log(f"models: shipped with dks-gym ({', '.join(MODEL_LABELS[k] for k in shipped)}); train your own with `dks-gym demo --train` "
-            "or `dks-gym train burgers`")
+        log(f"models: shipped with dks-gym ({', '.join(MODEL_LABELS[k] for k in shipped)}); train your own with "
+            "`dks-gym demo --train` or `dks-gym train burgers`")
     log(f"figure: {figure}\nresults: {out / 'results.json'}\n"
         f"total {time.perf_counter() - start:.0f} s (data and models {trained - start:.0f} s). "
         "For every experiment of the paper: `dks-gym reproduce burgers`.")

@@ -1,9 +1,9 @@
 """How every table of dks-gym prints a number: one place, so one value prints the same in the reproduce
 tables, the demo, the placement ranking, ``dks-gym compare`` and the README's results.
 
-Errors and other scores print with three significant digits: plainly between 0.01 and 1000, in
-scientific notation outside (``1.29e+03``, ``3.9e-04`` never: ``3.90e-04``); a missing or non-finite value
-prints as ``-``. Ratios print with three significant digits, fractions with a fixed number of decimals.
+Errors and other scores print with three significant digits (:func:`sci`): plainly between 0.01 and 1000,
+in scientific notation outside (``1.29e+03``, ``3.90e-04``); a missing or non-finite value prints as ``-``.
+Ratios and times print with three significant digits (:func:`sig`), fractions with fixed decimals.
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ def mean_std(mean: float | None, std: float | None, *, missing: str = MISSING) -
     return sci(mean) if std is None else f"{sci(mean)} ± {sci(std)}"
 
 
-def ratio(x: float | None) -> str:
-    """A ratio with three significant digits (``1.07``, ``0.5``, ``12.3``); ``-`` if missing."""
-    return format(x, ".3g") if _finite(x) else MISSING
+def sig(x: float | None, digits: int = 3) -> str:
+    """A ratio or a time with ``digits`` significant digits (``1.07``, ``0.5``, ``12.3``); ``-`` if missing."""
+    return format(x, f".{digits}g") if _finite(x) else MISSING
 
 
 def fixed(x: float | None, decimals: int = 3) -> str:
@@ -68,4 +68,4 @@ def text_table(header: Sequence[str], rows: Sequence[Sequence[str]], widths: Seq
     return "\n".join([head, "-" * len(head)] + [line(row) for row in rows])
 
 
-__all__ = ["MISSING", "cost", "fixed", "markdown_table", "mean_std", "ratio", "sci", "text_table"]
+__all__ = ["MISSING", "cost", "fixed", "markdown_table", "mean_std", "sci", "sig", "text_table"]

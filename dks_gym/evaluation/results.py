@@ -52,7 +52,7 @@ import json
 import math
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -74,6 +74,61 @@ _REQUIRED_RECORD = RECORD_KEY + (
 )
 
 
+class _RecordKey(TypedDict):
+    experiment: str
+    model: str
+    filter: str
+    initial: str
+    noise: float
+    r: int
+    T: int
+    n_members: int | None
+    batch: int
+    final_mse_mean: float | None
+    final_mse_std: float | None
+    per_step_mse_mean: list[float | None]
+    per_trajectory_final_mse: list[float | None]
+    max_forecast_norm: list[float | None] | None
+    da_step_seconds: float | None
+    wall_time: float | None
+
+
+class Record(_RecordKey, total=False):
+    """One run's record (the fields of the schema above); the optional fields are those after ``wall_time``
+    there, and a harness may add fields of its own (the placement records: ``policy``, ``sensors`` ...)."""
+
+    per_trajectory_step_mse: list[list[float | None]]
+    trajectories: list[int]
+    params: list[float | None]
+    divergence_resets: list[int]
+    final_coverage_mean: float | None
+    final_nees_mean: float | None
+    final_crps_mean: float | None
+    per_step_coverage_mean: list[float | None] | None
+    per_step_nees_mean: list[float | None] | None
+    per_step_crps_mean: list[float | None] | None
+    final_channel_mse_mean: dict[str, float | None]
+    final_channel_nmse_mean: dict[str, float | None]
+    per_step_gain_norm_mean: list[float | None]
+    per_step_spread_mean: list[float | None]
+
+
+class _DocumentRequired(TypedDict):
+    schema: str
+    schema_version: int
+    benchmark: str
+    preset: str
+    dataset: dict[str, Any]
+    config: dict[str, Any]
+    records: list[Record]
+
+
+class ResultsDocument(_DocumentRequired, total=False):
+    """A results file's content (the layout above)."""
+
+    models: list[dict[str, Any]]
+
+
 class ResultsError(ValueError):
     """A results file does not follow the schema; the message names the offending item."""
 
@@ -91,10 +146,10 @@ def _numbers(values: Any) -> Any:
     return [_numbers(v) for v in arr] if arr.ndim > 1 else [_number(v) for v in arr]
 
 
-def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool = True) -> dict[str, Any]:
+def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool = True) -> Record:
     """A schema record from an :class:`~dks_gym.assimilation.AssimilationResult`."""
     cfg = result.config
-    record: dict[str, Any] = {
+    record: Record = {
         "experiment": experiment,
         "model": result.model,
         "filter": cfg.filter.kind,
@@ -305,7 +360,7 @@ def load_results(path: str | Path) -> dict[str, Any]:
         raise ResultsError(f"{path}: {exc}") from exc
 
 
-def select(doc: dict[str, Any], **criteria: Any) -> list[dict[str, Any]]:
+def select(doc: ResultsDocument, **criteria: Any) -> list[Record]:
     """The records whose fields equal ``criteria`` (e.g. ``experiment="main", filter="ekf"``)."""
     return [r for r in doc["records"] if all(r.get(k) == v for k, v in criteria.items())]
 
@@ -398,6 +453,8 @@ def format_comparison(a: dict[str, Any], b: dict[str, Any], rows: list[dict[str,
 
 __all__ = [
     "RECORD_KEY",
+    "Record",
+    "ResultsDocument",
     "SCHEMA",
     "SCHEMA_VERSION",
     "UNCERTAINTY_SCORES",

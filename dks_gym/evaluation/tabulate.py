@@ -1,0 +1,116 @@
+"""The one table builder of the reproduce tables: rows of variables, columns that turn a row into a cell.
+
+Every experiment's table is ``tabulate(rows, columns)``: ``rows`` are small dicts of what varies down the
+table (``{"model": "koopman", "n": 20}``), each :class:`Column` a header and a function of the row. The cells
+look records up in a :class:`Records` view of a results document and print them with
+:mod:`~dks_gym.evaluation.formatting` (DAPPER's ``tabulate_avrgs`` idea: experiments are data, one builder).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .figures import MODEL_LABELS
+from .formatting import MISSING, markdown_table, mean_std, sci, sig
+from .paper import PAPER_DERIVED, PAPER_FINAL_MSE
+from .results import Record, ResultsDocument, select
+
+Row = Mapping[str, Any]
+
+#: The scenario every experiment varies one thing of: the paper's defaults (r = 32, T = 1, 20 % noise).
+DEFAULT_SCENARIO = {"initial": "approximate", "noise": 0.2, "r": 32, "T": 1}
+
+
+class Records:
+    """A results document's records looked up by their fields (``find(model="mlp", filter="ekf")``)."""
+
+    def __init__(self, doc: ResultsDocument) -> None:
+        self.doc = doc
+        self.benchmark: str = doc["benchmark"]
+        self.config: dict[str, Any] = doc["config"]
+        self.experiments = {r["experiment"] for r in doc["records"]}
+
+    def select(self, **criteria: Any) -> list[Record]:
+        """Every record whose fields equal ``criteria``."""
+        return select(self.doc, **criteria)
+
+    def find(self, **criteria: Any) -> Record | None:
+        """The first record matching ``criteria`` in any experiment (experiments repeat identical runs)."""
+        found = self.select(**criteria)
+        return found[0] if found else None
+
+    def base(self, **criteria: Any) -> Record | None:
+        """The MLP forward run of a scenario: what the paper's bar charts divide by."""
+        return self.find(model="mlp", filter="forward", **criteria)
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of a table: its header and the function that makes a row's cell."""
+
+    header: str
+    cell: Callable[[Row], str]
+
+
+def tabulate(rows: Iterable[Row], columns: Sequence[Column]) -> str:
+    """A markdown table with one line per row and one cell per column."""
+    rows = list(rows)
+    return markdown_table([c.header for c in columns], [[c.cell(row) for c in columns] for row in rows])
+
+
+def label(row: Row) -> str:
+    """The row's model as the paper names it."""
+    return MODEL_LABELS.get(row["model"], row["model"])
+
+
+# Cells ---------------------------------------------------------------------------------------------------
+def mse(rec: Record | None) -> str:
+    """A record's final-time MSE, mean ± sample std over the test trajectories."""
+    return MISSING if rec is None else mean_std(rec["final_mse_mean"], rec["final_mse_std"])
+
+
+def mse_ratio(num: Record | None, den: Record | None) -> str:
+    """The ratio of two records' mean final MSE (``-`` when either is missing or the denominator is 0)."""
+    if num is None or den is None or not den["final_mse_mean"] or num["final_mse_mean"] is None:
+        return MISSING
+    return sig(num["final_mse_mean"] / den["final_mse_mean"])
+
+
+def max_norm(rec: Record | None) -> float | None:
+    """max_k ||F_k||_2 over a record's trajectories (None without one)."""
+    values = [v for v in (rec or {}).get("max_forecast_norm") or [] if v is not None]
+    return max(values) if values else None
+
+
+def over_steps(rec: Record, name: str) -> float | None:
+    """The mean over frames 1..n_t-1 of a per-step score (frame 0 is the initial estimate, before any step)."""
+    values = [v for v in (rec.get(name) or [])[1:] if v is not None]
+    return float(np.mean(values)) if values else None
+
+
+def paper_mse(benchmark: str, model: str, filt: str) -> str:
+    """The paper's final MSE of ``model`` under ``filt``, ``≈`` when only derived from its text."""
+    value = PAPER_FINAL_MSE.get(benchmark, {}).get((model, filt))
+    if value is not None:
+        return sci(value)
+    derived = PAPER_DERIVED.get(benchmark, {}).get((model, filt))
+    return f"≈{sci(derived[0])}" if derived else MISSING
+
+
+__all__ = [
+    "DEFAULT_SCENARIO",
+    "Column",
+    "Records",
+    "Row",
+    "label",
+    "max_norm",
+    "mse",
+    "mse_ratio",
+    "over_steps",
+    "paper_mse",
+    "tabulate",
+]
