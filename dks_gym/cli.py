@@ -64,7 +64,7 @@ LAZY_COMMANDS = {
     "demo": ("dks_gym.evaluation.commands:demo_command",
              "Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a..."),
     "reproduce": ("dks_gym.evaluation.commands:reproduce_command",
-                  "Run the paper's Section IV experiments on BENCHMARK; write results.json, tables.md and..."),
+                  "Run the paper's Section IV experiments on BENCHMARK; write results.json.gz, tables.md and..."),
 }
 
 

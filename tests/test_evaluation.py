@@ -19,9 +19,9 @@ import dks_gym  # noqa: F401
 from dks_gym.dataset import Dataset
 from dks_gym.assimilation import AssimilationConfig, FilterConfig, approximate_initial_latent, run_assimilation
 from dks_gym.evaluation.commands import compare_command, reproduce_command
+from dks_gym.evaluation.comparison import compare
 from dks_gym.evaluation.results import (
     ResultsError,
-    compare,
     load_results,
     make_record,
     merge,
@@ -262,7 +262,7 @@ def reproduced(models, home: Path, tmp_path_factory: pytest.TempPathFactory) -> 
 def test_reproduce_main_writes_results_tables_and_figures(reproduced) -> None:
     out, seconds = reproduced
     assert seconds < 180
-    doc = load_results(out / "results.json")
+    doc = load_results(out / "results.json.gz")
     assert doc["benchmark"] == "burgers" and doc["config"]["experiments"] == ["main"]
     runs = {(r["model"], r["filter"], r["initial"]) for r in doc["records"]}
     assert runs == {(m, f, i) for m in ("koopman", "pdmd", "mlp", "xlstm") for f in ("forward", "ekf")
@@ -280,7 +280,7 @@ def test_reproduce_reruns_merge_and_compare_prints_ratios(reproduced, models) ->
     result = CliRunner().invoke(reproduce_command, ["burgers", "--data-preset", "small", "--only", "operator_norm",
                                                     "--out", str(out), "--no-train"])
     assert result.exit_code == 0, result.output
-    doc = load_results(out / "results.json")
+    doc = load_results(out / "results.json.gz")
     assert {r["experiment"] for r in doc["records"]} == {"main", "operator_norm"}
     # The same run asked for by two experiments gives the same record.
     a = next(r for r in doc["records"] if r["experiment"] == "main" and r["model"] == "mlp" and r["filter"] == "ekf"
@@ -293,15 +293,15 @@ def test_reproduce_reruns_merge_and_compare_prints_ratios(reproduced, models) ->
                                                     "--only", "operator_norm", "--out", str(out), "--no-train",
                                                     "--skip-done"])
     assert result.exit_code == 0 and "skipping experiments already in" in result.output
-    assert load_results(out / "results.json")["records"] == doc["records"]
-    result = CliRunner().invoke(compare_command, [str(out / "results.json"), str(out / "results.json"),
+    assert load_results(out / "results.json.gz")["records"] == doc["records"]
+    result = CliRunner().invoke(compare_command, [str(out / "results.json.gz"), str(out / "results.json.gz"),
                                                   "--experiment", "main"])
     assert result.exit_code == 0 and result.output.count(" 1 ") >= 16
 
 
 def test_koopman_ekf_beats_its_forward_run_after_short_training(reproduced) -> None:
     """Paper Section IV: assimilation lowers the error of the linear Koopman model (here 150 lite steps)."""
-    doc = load_results(reproduced[0] / "results.json")
+    doc = load_results(reproduced[0] / "results.json.gz")
 
     def mse(filt: str, initial: str) -> float:
         return next(r["final_mse_mean"] for r in doc["records"] if r["experiment"] == "main"
@@ -360,7 +360,7 @@ def _rec(doc: dict, **criteria) -> dict | None:
 def test_committed_tables_regenerate_byte_for_byte(name: str) -> None:
     from dks_gym.evaluation.reproduce import tables_markdown
 
-    doc = load_results(RESULTS / name / "results.json")
+    doc = load_results(RESULTS / name / "results.json.gz")
     assert tables_markdown(doc) == (RESULTS / name / "tables.md").read_text()
 
 
@@ -369,7 +369,7 @@ def test_committed_lite_results_every_experiment_in_tables_and_figures(tmp_path:
     write_figures draws one figure per experiment (the reconstruction needs the run's cache: not here)."""
     from dks_gym.evaluation.reproduce import tables_markdown, write_figures
 
-    doc = load_results(RESULTS / "burgers-lite" / "results.json")
+    doc = load_results(RESULTS / "burgers-lite" / "results.json.gz")
     assert set(doc["config"]["experiments"]) == {"main", "enkf", "ensemble", "noise", "latent", "multistep",
                                                  "operator_norm", "timing"}
     (tmp_path / "tables.md").write_text(tables_markdown(doc))
@@ -493,7 +493,7 @@ def test_an_interrupted_reproduce_continues_with_the_runs_already_written(models
                          log=lambda *_: None)
     finally:
         rp.run_assimilation = real
-    partial = load_results(out / "results.json")
+    partial = load_results(out / "results.json.gz")
     assert len(partial["records"]) == 2  # the two finished runs survived the interruption
     said: list[str] = []
     ran: list[str] = []
@@ -509,6 +509,6 @@ def test_an_interrupted_reproduce_continues_with_the_runs_already_written(models
     finally:
         rp.run_assimilation = real
     assert len(ran) == 8 - 2 and "2 of 8 runs kept" in " ".join(said) and "6 runs to do" in " ".join(said)
-    doc = load_results(out / "results.json")
+    doc = load_results(out / "results.json.gz")
     assert len(doc["records"]) == 8
     assert doc["records"][:2] == partial["records"]  # kept as written, not recomputed

@@ -15,6 +15,7 @@ from safetensors import safe_open
 import dks_gym  # noqa: F401  (registers the env ids)
 from dks_gym.assimilation import AssimilationConfig, run_assimilation
 from dks_gym.dataset import Dataset
+from dks_gym.evaluation.results import load_results
 from dks_gym.models import CheckpointMissing, load_model
 from dks_gym.models.shipped import (
     MAX_TOTAL_BYTES,
@@ -34,7 +35,7 @@ from dks_gym.names import MODEL_KINDS
 from dks_gym.wrappers import LatentFilter
 
 ROOT = Path(__file__).resolve().parents[1]
-BURGERS_TABLE = ROOT / "docs" / "results" / "burgers-lite-calibrated" / "results.json"
+BURGERS_TABLE = ROOT / "docs" / "results" / "burgers-lite-calibrated" / "results.json.gz"
 
 
 def _snapshot(home: Path) -> dict[str, tuple[int, int]]:
@@ -133,7 +134,7 @@ def test_the_demo_with_the_shipped_burgers_models_reproduces_the_committed_table
     from dks_gym.evaluation.demo import run_demo
 
     committed = {(r["model"], r["filter"]): r["final_mse_mean"]
-                 for r in json.loads(BURGERS_TABLE.read_text())["records"] if r["experiment"] == "calibrated"}
+                 for r in load_results(BURGERS_TABLE)["records"] if r["experiment"] == "calibrated"}
     doc = run_demo(tmp_path / "demo", progress=False)
     got = {(r["model"], r["filter"]): r["final_mse_mean"] for r in doc["records"]}
     assert set(got) == set(committed)
@@ -163,8 +164,8 @@ def test_the_shipped_cfd_models_start_at_once_and_reproduce_the_committed_koopma
         assert shipped is not None and shipped.differences(ds) == [], (kind, shipped and shipped.differences(ds))
         env = LatentFilter(gym.make(f"DKS/{benchmark.capitalize()}-v0", data_path=path), model=kind)
         assert is_shipped(env.model.checkpoint_path)
-    committed = next(r["final_mse_mean"] for r in json.loads((ROOT / "docs" / "results" / benchmark /
-                                                              "results.json").read_text())["records"]
+    committed = next(r["final_mse_mean"] for r in load_results(ROOT / "docs" / "results" / benchmark /
+                                                                "results.json.gz")["records"]
                      if (r["experiment"], r["model"], r["filter"], r["initial"], r["r"], r["T"])
                      == ("main", "koopman", "ekf", "approximate", 32, 1))
     config = AssimilationConfig().replace(kind="ekf", Q=PAPER_Q, P0=PAPER_P0)

@@ -237,7 +237,7 @@ def test_reproduce_runs_the_sphere_small_preset_end_to_end(sphere_small: Path, t
                                                     "--only", "operator_norm", "--out", str(out), "--no-train",
                                                     *[a for m in neural for a in ("--model", m)]])
     assert result.exit_code == 0, result.output + repr(result.exception)
-    doc = load_results(out / "results.json")
+    doc = load_results(out / "results.json.gz")
     assert {(r["model"], r["filter"]) for r in doc["records"]} == {(m, f) for m in neural for f in ("forward", "ekf")}
     assert all(r["batch"] == 2 and r["final_mse_mean"] is not None for r in doc["records"])
     koopman = [r for r in doc["records"] if r["model"] == "koopman"]

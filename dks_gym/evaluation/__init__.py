@@ -10,7 +10,8 @@
 from ..assimilation import AssimilationConfig, AssimilationResult, run_assimilation
 from .demo import run_demo
 from .reproduce import EXPERIMENTS, reproduce
-from .results import compare, load_results, save_results, validate
+from .comparison import compare
+from .results import load_results, save_results, validate
 
 __all__ = [
     "EXPERIMENTS",

@@ -38,12 +38,12 @@ def _errors() -> tuple[type[BaseException], ...]:
               help="Dataset preset to evaluate on (and to train on when a model is missing).")
 @click.option("--no-train", is_flag=True, help="Fail instead of training a missing model.")
 @click.option("--skip-done", is_flag=True,
-              help="Keep the runs already in OUT/results.json instead of rerunning them (continue an interrupted run).")
+              help="Keep the runs already in OUT/results.json.gz instead of rerunning them (continue a stopped run).")
 @click.option("--noise-seed", type=int, default=0, show_default=True, help="Seed of the measurement noise.")
 def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None, only: tuple[str, ...],
                       models: tuple[str, ...], data_preset: str, no_train: bool, skip_done: bool,
                       noise_seed: int) -> None:
-    """Run the paper's Section IV experiments on BENCHMARK; write results.json, tables.md and figures/.
+    """Run the paper's Section IV experiments on BENCHMARK; write results.json.gz, tables.md and figures/.
 
     Experiments: main (forward vs EKF, approximate and exact IC), enkf, ensemble (n = 20/40/64), noise
     (10%/30%), latent (r = 16/64), multistep (T = 2/4/8), operator_norm, timing, calibrated. Missing models
@@ -68,7 +68,8 @@ def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None
 @click.option("--experiment", default=None, help="Only the records of this experiment.")
 def compare_command(a: Path, b: Path, experiment: str | None) -> None:
     """Print the ratios B / A of final MSE, operator norm and DA-step time for the runs in both results files."""
-    from .results import ResultsError, compare, format_comparison, load_results
+    from .comparison import compare, format_comparison
+    from .results import ResultsError, load_results
 
     try:
         doc_a, doc_b = load_results(a), load_results(b)

@@ -19,7 +19,7 @@ from typing import Any
 from ..benchmarks import get_benchmark
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart
 from .formatting import MISSING, fixed, mean_std, text_table
-from .results import Record, make_record, new_results, save_results
+from .results import RESULTS_FILE, Record, make_record, new_results, save_results
 
 DEMO_BENCHMARK = "burgers"
 DEMO_FILTERS = ("forward", "ekf", "enkf")
@@ -108,7 +108,7 @@ def run_demo(
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Run the demo (see the module docstring); return the results document written to ``out/results.json``
+    """Run the demo (see the module docstring); return the results document written to ``out/results.json.gz``
     (``out`` defaults to ``$DKS_GYM_HOME/demo``). ``train``: train and tune the models into the data home
     (resuming or reusing what is there) instead of taking the shipped ones."""
     from tqdm.auto import tqdm
@@ -144,7 +144,7 @@ def run_demo(
     config = dict(_demo_config(ds, base, device), wall_time_s=time.perf_counter() - start,
                   setup_time_s=trained - start, shipped_models=shipped)
     doc = new_results(DEMO_BENCHMARK, "lite", dataset_identity(ds), config, records)
-    save_results(doc, out / "results.json")
+    save_results(doc, out / RESULTS_FILE)
 
     baseline = next(r for r in records if r["model"] == "mlp" and r["filter"] == "forward")
     panels = [(f"({'abc'[i]}) {label}", [r for r in records if r["filter"] == filt], baseline)
@@ -161,7 +161,7 @@ def run_demo(
     if shipped:
         log(f"models: shipped with dks-gym ({', '.join(MODEL_LABELS[k] for k in shipped)}); train your own with "
             "`dks-gym demo --train` or `dks-gym train burgers`")
-    log(f"figure: {figure}\nresults: {out / 'results.json'}\n"
+    log(f"figure: {figure}\nresults: {out / RESULTS_FILE}\n"
         f"total {time.perf_counter() - start:.0f} s (data and models {trained - start:.0f} s). "
         "For every experiment of the paper: `dks-gym reproduce burgers`.")
     return doc

@@ -5,7 +5,7 @@ The experiments are the objects of :data:`~dks_gym.evaluation.experiment.EXPERIM
 :mod:`~dks_gym.evaluation.paper_experiments`); this module runs what they ask for and assembles what they
 draw. Models come from :func:`dks_gym.models.load_model` (trained when missing unless ``train=False``, so a
 rerun reuses every finished or resumes every interrupted training). Identical runs requested by several
-experiments are computed once. The output folder gets ``results.json`` (schema in
+experiments are computed once. The output folder gets ``results.json.gz`` (schema in
 :mod:`dks_gym.evaluation.results`; the records of experiments not rerun are kept from an existing file for
 the same benchmark, preset and dataset), ``tables.md`` (ours beside the paper's numbers) and
 ``figures/*.png``.
@@ -28,6 +28,7 @@ from .figures import MODEL_LABELS
 from .formatting import fixed, markdown_table, sci
 from .paper_experiments import MODELS
 from .results import (
+    RESULTS_FILE,
     Record,
     ResultsDocument,
     ResultsError,
@@ -222,7 +223,7 @@ class Reproduction:
         self.save()
 
     def save(self) -> None:
-        """Write results.json (the records so far, plus the experiments of ``previous`` not in them) and tables.md."""
+        """Write results.json.gz (the records so far, plus the experiments of ``previous`` not in them), tables.md."""
         stamp = {"created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                  "wall_time_s": time.perf_counter() - self.start}
         doc = new_results(self.benchmark, self.preset, self.identity, dict(self.config, **stamp), self.records,
@@ -231,7 +232,7 @@ class Reproduction:
             doc = merge(self.previous, doc)
         present = {r["experiment"] for r in doc["records"]}
         doc["config"]["experiments"] = [n for n in EXPERIMENTS if n in present]
-        save_results(doc, self.out / "results.json")
+        save_results(doc, self.out / RESULTS_FILE)
         (self.out / "tables.md").write_text(tables_markdown(doc))
         self.doc = doc
 
@@ -242,7 +243,7 @@ def _open(benchmark: str, preset: str, device: str, out: Path, ds: Any, train: b
     from ..models.checkpoint import dataset_identity
 
     identity = dataset_identity(ds)
-    previous = _previous(out / "results.json", benchmark, preset, identity)
+    previous = _previous(out / RESULTS_FILE, benchmark, preset, identity)
     # With skip_done, a run whose record is already in the results file is kept, not rerun: an interrupted
     # reproduce continues where it stopped (records are saved after every run, checkpoints during training).
     kept = {record_key(r): r for r in previous["records"]} if skip_done and previous is not None else {}
@@ -256,7 +257,7 @@ def _announce(session: Reproduction, pairs: list[tuple[str, Run]], log: Callable
     """Log how many runs are left and which models must be trained first; return the number left."""
     todo = [(name, run) for name, run in pairs if run.record_key(name) not in session.kept]
     if len(todo) < len(pairs):
-        log(f"dks-gym: skipping experiments already in {session.out / 'results.json'} ({len(pairs) - len(todo)} "
+        log(f"dks-gym: skipping experiments already in {session.out / RESULTS_FILE} ({len(pairs) - len(todo)} "
             f"of {len(pairs)} runs kept; an experiment interrupted part way continues with its missing runs)")
     missing = sorted({"{} r={} T={}".format(*run.model_key) for _, run in todo
                       if not _trained(session.benchmark, run.model_key, session.preset, session.dataset)})
@@ -282,11 +283,11 @@ def reproduce(
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> ResultsDocument | dict[str, Any]:
-    """Run the selected experiments, write results.json, tables.md and figures to ``out``; return the results.
+    """Run the selected experiments, write results.json.gz, tables.md and figures to ``out``; return the results.
 
     Experiments run one after the other; after every run the results file and the tables are rewritten, so
     an interrupted run keeps every finished run (and every finished or partial training). ``skip_done``
-    keeps the runs already in ``out/results.json`` instead of rerunning them: rerun with it to continue.
+    keeps the runs already in ``out/results.json.gz`` instead of rerunning them: rerun with it to continue.
     Before starting it logs how many runs are left and which models must be trained first.
     """
     from tqdm.auto import tqdm
@@ -314,7 +315,7 @@ def reproduce(
         log("dks-gym: nothing to run")
         return {}
     write_figures(session.doc, out / "figures", cache=session.results, dataset=ds)
-    log(f"dks-gym: wrote {out / 'results.json'}, {out / 'tables.md'} and {out / 'figures'} "
+    log(f"dks-gym: wrote {out / RESULTS_FILE}, {out / 'tables.md'} and {out / 'figures'} "
         f"in {time.perf_counter() - session.start:.0f} s")
     return session.doc
 

@@ -48,6 +48,7 @@ by their key and gives the ratios B / A.
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 from collections.abc import Iterable
@@ -61,6 +62,8 @@ from ..names import ESTIMATORS, FILTERS, MODEL_KINDS
 
 SCHEMA = "dks-gym-results"
 SCHEMA_VERSION = 1
+#: The name every writer gives its results file (gzip-compressed JSON: a tenth of the plain size).
+RESULTS_FILE = "results.json.gz"
 RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_members")
 MODELS = MODEL_KINDS + ESTIMATORS
 RECORD_FILTERS = FILTERS + ("none",)  # "none": an estimator's record (no filter)
@@ -333,26 +336,31 @@ def validate(doc: Any) -> dict[str, Any]:
 
 
 # Files ---------------------------------------------------------------------------------------------------
-def save_results(doc: dict[str, Any], path: str | Path) -> Path:
-    """Validate and write ``doc`` to ``path`` atomically (temporary file in the same folder, then rename)."""
+def save_results(doc: ResultsDocument, path: str | Path) -> Path:
+    """Validate and write ``doc`` to ``path`` atomically (temporary file in the same folder, then rename);
+    gzip-compressed when the name ends in ``.gz`` (byte-reproducible: no time stamp or name in the header)."""
     validate(doc)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp, open(tmp, "w") as f:
-        json.dump(doc, f, indent=1, allow_nan=False)
-        f.write("\n")
+    text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        if path.name.endswith(".gz"):
+            with gzip.GzipFile(filename="", mode="wb", fileobj=f, compresslevel=9, mtime=0) as z:
+                z.write(text.encode())
+        else:
+            f.write(text.encode())
     return path
 
 
-def load_results(path: str | Path) -> dict[str, Any]:
-    """Read and validate a results file."""
+def load_results(path: str | Path) -> ResultsDocument:
+    """Read and validate a results file (plain JSON, or gzip-compressed JSON when the name ends in ``.gz``)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no results file at {path}; produce one with `dks-gym reproduce BENCHMARK --out DIR`")
     try:
-        with open(path) as f:
+        with (gzip.open(path, "rt") if path.name.endswith(".gz") else open(path)) as f:
             doc = json.load(f)
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, OSError, EOFError) as exc:
         raise ResultsError(f"{path} is not valid JSON ({exc})") from exc
     try:
         return validate(doc)
@@ -380,87 +388,15 @@ def merge(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
     return validate(out)
 
 
-# Comparison ----------------------------------------------------------------------------------------------
-def _max_or_none(values: list | None) -> float | None:
-    finite = [v for v in values or [] if v is not None]
-    return max(finite) if finite else None
-
-
-def _ratio(a: float | None, b: float | None) -> float | None:
-    if a is None or b is None or a == 0:
-        return None
-    return b / a
-
-
-def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
-    """Pair the records of ``a`` and ``b`` by key; per pair the values and the ratios B / A.
-
-    Each row: the key fields, ``mse_a``, ``mse_b``, ``mse_ratio`` (final_mse_mean B / A), ``norm_ratio``
-    (max over trajectories of max_forecast_norm), ``time_ratio`` (da_step_seconds). Records present in only
-    one file are listed with ``only`` = "a" or "b" and no ratios.
-    """
-    validate(a)
-    validate(b)
-    index_b = {record_key(r): r for r in b["records"]}
-    rows: list[dict[str, Any]] = []
-    for ra in a["records"]:
-        key = record_key(ra)
-        row = dict(zip(RECORD_KEY, key))
-        rb = index_b.pop(key, None)
-        if rb is None:
-            rows.append(dict(row, only="a", mse_a=ra["final_mse_mean"]))
-            continue
-        norm_a, norm_b = _max_or_none(ra["max_forecast_norm"]), _max_or_none(rb["max_forecast_norm"])
-        rows.append(dict(
-            row, only=None, mse_a=ra["final_mse_mean"], mse_b=rb["final_mse_mean"],
-            mse_ratio=_ratio(ra["final_mse_mean"], rb["final_mse_mean"]),
-            norm_a=norm_a, norm_b=norm_b, norm_ratio=_ratio(norm_a, norm_b),
-            time_ratio=_ratio(ra["da_step_seconds"], rb["da_step_seconds"]),
-        ))
-    rows.extend(dict(zip(RECORD_KEY, key), only="b", mse_b=rb["final_mse_mean"]) for key, rb in index_b.items())
-    return rows
-
-
-def _fmt(x: float | None, spec: str = ".3e") -> str:
-    return "-" if x is None else format(x, spec)
-
-
-def format_comparison(a: dict[str, Any], b: dict[str, Any], rows: list[dict[str, Any]] | None = None) -> str:
-    """A plain-text table of :func:`compare` (ratios B / A), with a note when the two files differ in setup."""
-    rows = compare(a, b) if rows is None else rows
-    notes = []
-    for name in ("benchmark", "preset"):
-        if a[name] != b[name]:
-            notes.append(f"note: {name} differs: A={a[name]!r}, B={b[name]!r}")
-    if a["dataset"].get("fingerprint") != b["dataset"].get("fingerprint"):
-        notes.append("note: the two files were computed on different datasets (fingerprints differ)")
-    head = (f"{'experiment':<14}{'model':<9}{'filter':<8}{'initial':<12}{'noise':>6}{'r':>4}{'T':>3}{'n':>4}"
-            f"{'MSE A':>11}{'MSE B':>11}{'B/A':>8}{'|F| B/A':>9}{'time B/A':>10}")
-    lines = notes + [head, "-" * len(head)]
-    for row in rows:
-        n = "-" if row["n_members"] is None else str(row["n_members"])
-        prefix = (f"{row['experiment']:<14}{row['model']:<9}{row['filter']:<8}{row['initial']:<12}"
-                  f"{row['noise']:>6g}{row['r']:>4}{row['T']:>3}{n:>4}")
-        if row["only"]:
-            mse = row.get("mse_a") if row["only"] == "a" else row.get("mse_b")
-            cols = (_fmt(mse), "-") if row["only"] == "a" else ("-", _fmt(mse))
-            lines.append(f"{prefix}{cols[0]:>11}{cols[1]:>11}   only in {row['only'].upper()}")
-        else:
-            lines.append(f"{prefix}{_fmt(row['mse_a']):>11}{_fmt(row['mse_b']):>11}{_fmt(row['mse_ratio'], '.3g'):>8}"
-                         f"{_fmt(row['norm_ratio'], '.3g'):>9}{_fmt(row['time_ratio'], '.3g'):>10}")
-    return "\n".join(lines)
-
-
 __all__ = [
     "RECORD_KEY",
+    "RESULTS_FILE",
     "Record",
     "ResultsDocument",
     "SCHEMA",
     "SCHEMA_VERSION",
     "UNCERTAINTY_SCORES",
     "ResultsError",
-    "compare",
-    "format_comparison",
     "load_results",
     "make_record",
     "merge",
