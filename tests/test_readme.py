@@ -66,3 +66,30 @@ def test_readme_relative_links_exist() -> None:
     missing = [t for t in targets if t.split("#")[0] and not (ROOT / t.split("#")[0]).exists()]
     assert targets, "README.md links to no documentation"
     assert not missing, f"README.md links to missing files: {missing}"
+
+
+#: The README's results rows: the committed results folder and the experiment each row quotes.
+README_RESULTS = {"Burgers, paper preset": ("burgers", "main"),
+                  "Burgers, lite, calibrated Q": ("burgers-lite-calibrated", "calibrated"),
+                  "Dambreak, lite": ("dambreak", "main"), "Cylinder, lite": ("cylinder", "main")}
+
+
+def test_readme_results_print_the_committed_records_as_every_table_does() -> None:
+    """The results table's numbers are the committed records' final EKF MSE (approximate initial condition)
+    printed by the one formatter (`sci`) the reproduce, demo, placement and compare tables use: the Koopman
+    cell, and the best of the other three models (ties listed together)."""
+    from dks_gym.evaluation.formatting import sci
+    from dks_gym.evaluation.figures import MODEL_LABELS
+    from dks_gym.evaluation.results import load_results, select
+
+    rows = {cells[0]: cells for line in README.read_text().splitlines()
+            if line.startswith("| ") and len(cells := [c.strip() for c in line.strip("|").split("|")]) == 5}
+    assert set(README_RESULTS) <= set(rows)
+    for label, (folder, experiment) in README_RESULTS.items():
+        doc = load_results(ROOT / "docs" / "results" / folder / "results.json.gz")
+        mse = {m: sci(select(doc, experiment=experiment, model=m, filter="ekf", initial="approximate")[0]
+                      ["final_mse_mean"]) for m in ("koopman", "pdmd", "mlp", "xlstm")}
+        others = {m: v for m, v in mse.items() if m != "koopman"}
+        best = min(others.values(), key=float)
+        expected = f"{', '.join(MODEL_LABELS[m] for m, v in others.items() if v == best)} {best}"
+        assert rows[label][1:3] == [mse["koopman"], expected], label
