@@ -79,7 +79,7 @@ def test_a_spec_trains_a_missing_model_and_tunes_it_as_load_model_would(burgers_
     assert env.spec.additional_wrappers[-1].kwargs["model"] == spec  # RecordConstructorArgs keeps the spec
     cached = load_model("burgers", "pdmd", r=4, dataset=Dataset(burgers_small))
     assert cached.checkpoint_path == env.model.checkpoint_path and "Q_scale" in cached.calibration
-    _, info = env.reset(seed=0)
+    env.reset(seed=0)
     on = env.step(None)[4]
     env.close()
     again = LatentFilter(gym.make("DKS/Burgers-v0", data_path=str(burgers_small)), cached, "ekf",

@@ -28,9 +28,7 @@ import numpy as np
 
 from ..assimilation import FilterConfig, ModelLike, Snapshot
 from ..envs.sensing import SensingEnv
-from .building import REWARDS, Uncertainty, belief_space, build_assimilation, refuses_moved_keywords
-
-__all__ = ["REWARDS", "LatentFilter", "Uncertainty", "belief_space", "build_assimilation"]
+from .building import Uncertainty, belief_space, build_assimilation, refuses_moved_keywords
 
 
 class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
