@@ -16,7 +16,8 @@ one sensing setting; other layouts and noise levels get the same scale.
 
 Who tunes: ``dks-gym train`` at the end of training, ``dks-gym calibrate BENCHMARK --model KIND``, and the
 calls that were asked to train (``train_if_missing=True``, e.g. a wrapper's ``ModelSpec``). Building an env or a
-wrapper otherwise never does: a model without a scale runs with the unscaled Q and warns once (:func:`~dks_gym.assimilation.config.process_noise_scale`).
+wrapper otherwise never does: a model without a scale runs with the unscaled Q and warns once
+(:func:`~dks_gym.assimilation.config.process_noise_scale`).
 """
 
 from __future__ import annotations
