@@ -1,8 +1,8 @@
 """dks-gym: Gymnasium environments for sparse flow sensing from the paper *Deep Koopman Sensing*.
 
 ``import dks_gym`` registers ``DKS/Burgers-v0``, ``DKS/Cylinder-v0``, ``DKS/Dambreak-v0`` and ``DKS/Sphere-v0``
-(by string entry points: it imports neither torch nor the filter stack). ``LatentFilter``, ``FilterConfig``
-and ``load_model`` are imported on first use; ``set_threads`` sets the torch CPU threads of dks-gym's
+(by string entry points: it imports neither torch nor the filter stack). ``LatentFilter``, ``FilterConfig``,
+``load_model`` and ``ModelSpec`` are imported on first use; ``set_threads`` sets the torch CPU threads of dks-gym's
 training and filtering (default 1: see :mod:`dks_gym.threads`).
 """
 
@@ -22,6 +22,7 @@ _LAZY = {
     "LatentFilter": "dks_gym.wrappers.latent_filter",
     "FilterConfig": "dks_gym.assimilation.config",
     "load_model": "dks_gym.models.training",
+    "ModelSpec": "dks_gym.models.spec",
 }
 
 
@@ -37,4 +38,5 @@ def __dir__() -> list[str]:
     return sorted([*globals(), *_LAZY])
 
 
-__all__ = ["FilterConfig", "LatentFilter", "SensingEnv", "__version__", "load_model", "register_envs", "set_threads"]
+__all__ = ["FilterConfig", "LatentFilter", "ModelSpec", "SensingEnv", "__version__", "load_model", "register_envs",
+           "set_threads"]

@@ -10,6 +10,7 @@ import gymnasium as gym
 
 import dks_gym  # noqa: F401  (registers the environments)
 from dks_gym.dataset import DatasetMissing, generate_dataset, load_dataset
+from dks_gym.models import ModelSpec
 from dks_gym.names import FILTERS, MODEL_KINDS
 from dks_gym.wrappers import LatentFilter
 
@@ -23,8 +24,8 @@ def main(preset: str = "paper") -> None:
     for model in MODEL_KINDS:
         row = []
         for filt in FILTERS:
-            env = LatentFilter(gym.make("DKS/Burgers-v0", preset=preset), model=model, filter=filt,
-                               train_if_missing=True)
+            env = LatentFilter(gym.make("DKS/Burgers-v0", preset=preset),
+                               model=ModelSpec(model, train_if_missing=True), filter=filt)
             finals = []
             for trajectory in range(env.unwrapped.dataset.n_trajectories("test")):
                 env.reset(seed=0, options={"trajectory": trajectory})

@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 
 import dks_gym  # noqa: F401  (registers the environments)
-from dks_gym import LatentFilter
+from dks_gym import LatentFilter, ModelSpec
 from dks_gym.dataset import generate_dataset
 from dks_gym.evaluation.figures import uncertainty_figure
 
@@ -33,8 +33,8 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="figure path (default uncertainty_BENCHMARK.png)")
     args = ap.parse_args()
     generate_dataset(args.benchmark, "paper")
-    env = LatentFilter(gym.make(ENV_IDS[args.benchmark], split="test"), model="koopman", filter="ekf",
-                       train_if_missing=True)
+    env = LatentFilter(gym.make(ENV_IDS[args.benchmark], split="test"),
+                       model=ModelSpec("koopman", train_if_missing=True), filter="ekf")
     bench = env.unwrapped.benchmark
     channel = args.channel or bench.observed_channel
     if channel not in bench.channels:

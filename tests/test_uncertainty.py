@@ -42,7 +42,7 @@ from dks_gym.evaluation.results import make_record, new_results, validate_record
 from dks_gym.models import LatentModel, benchmark_shape, build_model
 from dks_gym.models.checkpoint import read_checkpoint, save_checkpoint, update_calibration
 from dks_gym.models.training import calibrate
-from dks_gym.wrappers import LatentFilter
+from dks_gym.wrappers import LatentFilter, Uncertainty
 from dks_gym.wrappers.vector import LatentFilterVectorEnv
 
 KINDS = ("koopman", "mlp", "xlstm", "pdmd")
@@ -271,7 +271,7 @@ def test_enkf_std_is_the_spread_of_its_decoded_members(models: dict) -> None:
     model = models["koopman"]
     recon = np.full((1, 1024), 1e-3)
     env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="enkf",
-                       config=FilterConfig(n_members=6), reconstruction_var=recon)
+                       config=FilterConfig(n_members=6), uncertainty=Uncertainty(reconstruction_var=recon))
     env.reset(seed=1)
     _, _, _, _, info = env.step(None)
     E = env.filter.ensemble[0]
@@ -300,14 +300,16 @@ def test_reconstruction_variance_adds_to_the_filter_variance(models: dict, burge
     calibrated.calibration = dict(model.calibration, reconstruction_variance=torch.as_tensor(recon, dtype=torch.float32))
     stds = []
     for m, rv in ((model, 0.0), (model, recon), (calibrated, None)):
-        env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=m, filter="ekf", reconstruction_var=rv)
+        env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=m, filter="ekf",
+                           uncertainty=Uncertainty(reconstruction_var=rv))
         env.reset(seed=0)
         stds.append(env.step(None)[4]["estimate_std"].astype(np.float64))
         env.close()
     np.testing.assert_allclose(stds[1] ** 2, stds[0] ** 2 + recon, rtol=1e-4, atol=1e-10)
     np.testing.assert_allclose(stds[2], stds[1], rtol=1e-5)
     with pytest.raises(ValueError, match="shape"):
-        LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, reconstruction_var=np.ones(1024))
+        LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model,
+                     uncertainty=Uncertainty(reconstruction_var=np.ones(1024)))
 
 
 def test_vector_env_infos_and_switching_uncertainty_off(models: dict) -> None:

@@ -2,6 +2,7 @@
 
 * :class:`FilterConfig`: how to filter (the one filter configuration); :data:`FILTERS` its kinds;
 * :class:`Assimilation`: the batched core (forecast, update, decode, score) the wrappers step;
+* :func:`resolve_model`: a kind name, a :class:`~dks_gym.models.ModelSpec` or a model object as the model object;
 * :func:`run_episodes`: the one loop over whole episodes (the envs' layouts, a fixed layout per episode
   or a layout chosen per step), and :func:`run_assimilation` over a dataset split;
 * :class:`AssimilationConfig`, :class:`AssimilationResult`: an evaluation run's settings and measurements;
@@ -18,7 +19,7 @@ from .config import (
     FilterConfig,
     process_noise_scale,
 )
-from .core import Assimilation, Snapshot, approximate_initial_latent, field_errors, resolve_model
+from .core import Assimilation, Snapshot, approximate_initial_latent, field_errors
 from .episodes import (
     AssimilationResult,
     close_envs,
@@ -27,6 +28,7 @@ from .episodes import (
     run_dataset,
     run_episodes,
 )
+from .resolve import ModelLike, resolve_model
 from .tuning import calibrate_process_noise, held_out_coverage, tune_if_missing, tune_process_noise
 from .uncertainty import (
     ensemble_variance,
@@ -44,6 +46,7 @@ __all__ = [
     "AssimilationConfig",
     "AssimilationResult",
     "FilterConfig",
+    "ModelLike",
     "Snapshot",
     "approximate_initial_latent",
     "calibrate_process_noise",

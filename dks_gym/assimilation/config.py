@@ -22,6 +22,7 @@ from ..envs.faults import SensorFaults
 from ..filters import EKF, EnKF, LatentDynamics, augment_with_bias, augmented_covariance
 from ..filters.common import as_covariance, check_covariance_spec
 from ..filters.enkf import Localization
+from ..models import FilterableModel
 from ..names import FILTERS
 
 INITIAL_CONDITIONS = ("approximate", "exact")
@@ -113,7 +114,7 @@ class FilterConfig:
         """False for the forward run."""
         return self.kind != "forward"
 
-    def process_noise(self, model: Any) -> float | torch.Tensor:
+    def process_noise(self, model: FilterableModel) -> float | torch.Tensor:
         """``Q`` as the filters take it, a named choice resolved for ``model``."""
         if isinstance(self.Q, str):
             if self.Q == "paper":
@@ -122,7 +123,7 @@ class FilterConfig:
             return _calibrated(model, "Q") * process_noise_scale(model)
         return self.Q
 
-    def initial_covariance(self, model: Any) -> float | torch.Tensor:
+    def initial_covariance(self, model: FilterableModel) -> float | torch.Tensor:
         """``P0`` as the filters take it, a named choice resolved for ``model`` and the initial condition."""
         if isinstance(self.P0, str):
             if self.P0 == "paper":
@@ -130,8 +131,8 @@ class FilterConfig:
             return _calibrated(model, "P0_exact" if self.initial == "exact" else "P0")
         return self.P0
 
-    def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int, model: Any = None,
-             n_sensors: int | None = None) -> EKF | EnKF:
+    def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int,
+             model: FilterableModel | None = None, n_sensors: int | None = None) -> EKF | EnKF:
         """The filter object (the forward run is the EKF loop stepped with the update off); ``model``
         resolves ``Q="calibrated"``. With ``bias_drift`` the state is ``[z; b]`` over ``n_sensors`` biases."""
         Q = self.process_noise(model)  # the filters convert it to the state's dtype and device
@@ -143,7 +144,7 @@ class FilterConfig:
                         localization=self.localization, generator=seed, on_divergence=self.on_divergence)
         return EKF(dynamics, sigma=sigma, Q=Q, on_divergence=self.on_divergence)
 
-    def initial_state(self, model: Any, z0: torch.Tensor, sigma: torch.Tensor,
+    def initial_state(self, model: FilterableModel, z0: torch.Tensor, sigma: torch.Tensor,
                       n_sensors: int) -> tuple[torch.Tensor, torch.Tensor | float]:
         """The filter's start ``(mean, P0)``: ``z0`` and :meth:`initial_covariance`, augmented with zero biases
         of variance ``bias_prior**2`` (default ``sigma**2`` per element) when ``bias_drift`` is set."""
@@ -161,7 +162,7 @@ class FilterConfig:
 _UNTUNED_WARNED: set[tuple[str, str, str]] = set()
 
 
-def process_noise_scale(model: Any) -> float:
+def process_noise_scale(model: FilterableModel) -> float:
     """The scale of the model's calibrated Q (``calibration["Q_scale"]``, tuned at the end of training).
 
     A model without one runs with the unscaled calibrated Q and warns once per model, naming the command
@@ -179,7 +180,7 @@ def process_noise_scale(model: Any) -> float:
     return 1.0
 
 
-def _calibrated(model: Any, name: str) -> torch.Tensor:
+def _calibrated(model: FilterableModel, name: str) -> torch.Tensor:
     value = getattr(model, "calibration", {}).get(name)
     if value is None:
         raise ValueError(

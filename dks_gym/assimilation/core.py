@@ -22,16 +22,16 @@ import torch
 from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
 from ..filters import EKF, EnKF, LatentDynamics, bind_param
-from ..models import MODEL_KINDS, load_model, model_device
+from ..models import FilterableModel, model_device, model_dtype
 from ..threads import torch_threads
 from .config import FilterConfig
 from .uncertainty import ensemble_variance, gaussian_scores, jacobian_variance
 
 # Per model, per dataset file: the approximate initial latent state (it costs one pass over the train split).
-_APPROXIMATE_CACHE: "weakref.WeakKeyDictionary[Any, dict[str, torch.Tensor]]" = weakref.WeakKeyDictionary()
+_APPROXIMATE_CACHE: "weakref.WeakKeyDictionary[FilterableModel, dict[str, torch.Tensor]]" = weakref.WeakKeyDictionary()
 
 
-def approximate_initial_latent(model: Any, dataset: Dataset) -> torch.Tensor:
+def approximate_initial_latent(model: FilterableModel, dataset: Dataset) -> torch.Tensor:
     """z0 = mean over the training trajectories of their encoded first frames (SPEC section 4), (r,).
 
     For pDMD the encoding is the POD projection, so this is the mean of their POD coefficients.
@@ -55,32 +55,6 @@ def field_errors(estimate: torch.Tensor, truth: torch.Tensor, scored: tuple[int,
     if std is not None:
         diff = diff / std[list(scored)].to(diff)[None, :, None]
     return diff.pow(2).mean(dim=(1, 2))
-
-
-def resolve_model(model: Any, benchmark: str, *, r: int | None, preset: str, T: int, device: str,
-                  train_if_missing: bool, dataset: Dataset | None = None) -> Any:
-    """A model object, or the trained model named by ``model`` (one of :data:`MODEL_KINDS`).
-
-    ``r`` (default 32 for names) must match a given model object's latent dimension when it is passed.
-    ``dataset``: the environment's dataset; a named model is looked up by :func:`~dks_gym.models.load_model`
-    (the user's checkpoint, then the shipped one) for that dataset, and must have been trained on it; with
-    ``train_if_missing`` a missing one is trained (its process-noise scale is tuned by the caller,
-    :func:`~dks_gym.assimilation.tuning.tune_if_missing`). Otherwise nothing is trained or written.
-    """
-    if isinstance(model, str):
-        if model not in MODEL_KINDS:
-            raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODEL_KINDS)} or pass a model object")
-        model = load_model(benchmark, model, r=32 if r is None else r, preset=preset, T=T, device=device,
-                           dataset=dataset, train_if_missing=train_if_missing)
-    for attr in ("encode", "decode", "forecast", "filter_forecast_jacobian", "filter_observe_jacobian",
-                 "benchmark", "r", "kind"):
-        if not hasattr(model, attr):
-            raise TypeError(f"model must provide {attr!r} (see dks_gym.models.LatentModel), got {type(model).__name__}")
-    if model.benchmark != benchmark:
-        raise ValueError(f"the model was trained for {model.benchmark!r}, but the environment is {benchmark!r}")
-    if r is not None and model.r != r:
-        raise ValueError(f"the model has latent dimension r={model.r}, but r={r} was asked for")
-    return model
 
 
 @dataclass
@@ -121,15 +95,16 @@ class Assimilation:
     units squared (:func:`~dks_gym.assimilation.reconstruction_variance`) or one number for every cell,
     added to the filter's variance; default: the model's own, measured on held-out trajectories when it
     was trained (``model.calibration["reconstruction_variance"]``), else zero; ``0`` switches it off.
+    ``device``, ``dtype``: where and in what precision the filter runs (default: the model's).
     """
 
-    def __init__(self, model: Any, config: FilterConfig, *, device: str | torch.device | None = None,
-                 dtype: torch.dtype = torch.float32, uncertainty: bool = True,
+    def __init__(self, model: FilterableModel, config: FilterConfig, *, device: str | torch.device | None = None,
+                 dtype: torch.dtype | None = None, uncertainty: bool = True,
                  reconstruction_var: Any = None) -> None:
         self.model = model
         self.config = config
         self.device = model_device(model) if device is None else torch.device(device)
-        self.dtype = dtype
+        self.dtype = model_dtype(model) if dtype is None else dtype
         self.uncertainty = bool(uncertainty)
         if reconstruction_var is None:
             reconstruction_var = (getattr(model, "calibration", None) or {}).get("reconstruction_variance")
@@ -305,7 +280,8 @@ def _latency(envs: Sequence[SensingEnv]) -> int:
     return lags.pop()
 
 
-def _check_reconstruction_var(model: Any, value: Any, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+def _check_reconstruction_var(model: FilterableModel, value: Any, device: torch.device,
+                              dtype: torch.dtype) -> torch.Tensor:
     """``value`` as a (C, *grid) tensor (a number: the same for every cell), checked: finite, non-negative,
     the model's field shape."""
     t = torch.as_tensor(np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value,

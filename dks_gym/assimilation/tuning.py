@@ -15,8 +15,9 @@ it as ``model.calibration["Q_scale"]`` and in the model's checkpoint; it multipl
 one sensing setting; other layouts and noise levels get the same scale.
 
 Who tunes: ``dks-gym train`` at the end of training, ``dks-gym calibrate BENCHMARK --model KIND``, and the
-calls that were asked to train (``train_if_missing=True``). Building an env or a wrapper never does: a model
-without a scale runs with the unscaled Q and warns once (:func:`~dks_gym.assimilation.config.process_noise_scale`).
+calls that were asked to train (``train_if_missing=True``, e.g. a wrapper's ``ModelSpec``). Building an env or a
+wrapper otherwise never does: a model without a scale runs with the unscaled Q and warns once
+(:func:`~dks_gym.assimilation.config.process_noise_scale`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 
 from ..dataset import Dataset
+from ..models import FilterableModel
 from ..models.checkpoint import update_calibration
 from ..models.shipped import is_shipped
 from .config import AssimilationConfig
@@ -45,7 +47,7 @@ BISECTIONS = 6
 MAX_TRAJECTORIES = 5
 
 
-def _trajectories(model: Any) -> list[int] | None:
+def _trajectories(model: FilterableModel) -> list[int] | None:
     held_out = (getattr(model, "calibration", None) or {}).get("trajectories")
     if held_out is None:
         return None
@@ -55,7 +57,7 @@ def _trajectories(model: Any) -> list[int] | None:
     return index
 
 
-def held_out_coverage(model: Any, dataset: Dataset, scale: float, trajectories: list[int], *,
+def held_out_coverage(model: FilterableModel, dataset: Dataset, scale: float, trajectories: list[int], *,
                       noise_level: float = 0.2, n_sensors: int = 16) -> float:
     """The EKF's 95 % coverage over frames 1..n_t-1 of ``trajectories`` (train split) with ``scale * Q``."""
     config = AssimilationConfig(noise_level=noise_level, n_sensors=n_sensors, split="train")
@@ -64,7 +66,7 @@ def held_out_coverage(model: Any, dataset: Dataset, scale: float, trajectories: 
     return float(np.mean(result.step_coverage[:, 1:]))
 
 
-def tune_process_noise(model: Any, dataset: Dataset, *, target: float = TARGET_COVERAGE,
+def tune_process_noise(model: FilterableModel, dataset: Dataset, *, target: float = TARGET_COVERAGE,
                        noise_level: float = 0.2, n_sensors: int = 16, progress: bool = False) -> dict[str, Any]:
     """The scale ``s`` of the calibrated ``Q`` whose EKF covers ``target`` of the truth on the held-out frames.
 
@@ -107,7 +109,8 @@ def tune_process_noise(model: Any, dataset: Dataset, *, target: float = TARGET_C
     return {"scale": best[0], "coverage": best[1], "evaluations": evaluations}
 
 
-def calibrate_process_noise(model: Any, dataset: Dataset, *, progress: bool = True, write: bool = True) -> float:
+def calibrate_process_noise(model: FilterableModel, dataset: Dataset, *, progress: bool = True,
+                            write: bool = True) -> float:
     """Tune the scale of ``model``'s calibrated Q now (:func:`tune_process_noise`), set
     ``model.calibration["Q_scale"]`` and, with ``write``, store it in the model's checkpoint
     (``model.checkpoint_path``; never in a shipped file). Returns the scale.
@@ -128,7 +131,7 @@ def calibrate_process_noise(model: Any, dataset: Dataset, *, progress: bool = Tr
     return scale
 
 
-def tune_if_missing(model: Any, dataset: Dataset, *, progress: bool = True) -> None:
+def tune_if_missing(model: FilterableModel, dataset: Dataset, *, progress: bool = True) -> None:
     """:func:`calibrate_process_noise` for a model that has a calibrated Q but no tuned scale (a model just
     trained by a call that was asked to train); nothing for any other."""
     calibration = getattr(model, "calibration", None) or {}

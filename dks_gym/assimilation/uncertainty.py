@@ -28,7 +28,7 @@ import torch
 
 from ..dataset import Dataset
 from ..filters.common import psd_sqrt
-from ..models import LatentModel
+from ..models import FilterableModel, LatentModel
 from ..models.training import calibrate
 
 #: The two-sided 95 % quantile of the standard normal, Phi^-1(0.975).
@@ -50,7 +50,7 @@ def _quiet_jvp(fn: Any, primal: torch.Tensor, tangent: torch.Tensor) -> torch.Te
         return torch.func.jvp(fn, (primal,), (tangent,))[1]
 
 
-def _field_size(model: Any, z: torch.Tensor, mu: torch.Tensor) -> int:
+def _field_size(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor) -> int:
     """Numbers in one decoded field: C * n_cells from the model's shape, or from one decode."""
     if hasattr(model, "n_fields") and hasattr(model, "grid"):
         return int(model.n_fields) * int(np.prod(model.grid))
@@ -58,13 +58,13 @@ def _field_size(model: Any, z: torch.Tensor, mu: torch.Tensor) -> int:
         return int(np.prod(model.decode(z[:1], mu[:1]).shape[1:]))
 
 
-def _has_exact_decoder_jacobian(model: Any) -> bool:
+def _has_exact_decoder_jacobian(model: FilterableModel) -> bool:
     """True when the model overrides ``decoder_jacobian`` (a closed form, e.g. pDMD's affine decoder)."""
     method = getattr(type(model), "decoder_jacobian", None)
     return method is not None and method is not LatentModel.decoder_jacobian
 
 
-def jacobian_variance(model: Any, z: torch.Tensor, mu: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+def jacobian_variance(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
     """``diag(G P G^T)`` per batch element, ``(B, C, n_cells)``, with ``G = d decode(z, mu) / dz`` at ``z``.
 
     ``z`` (B, r), ``mu`` (B,), ``P`` (B, r, r) symmetric positive semi-definite. With ``L L^T = P``:
@@ -102,7 +102,8 @@ def jacobian_variance(model: Any, z: torch.Tensor, mu: torch.Tensor, P: torch.Te
     return torch.cat(parts)
 
 
-def _tangent_fields(model: Any, z: torch.Tensor, mu: torch.Tensor, tangents: torch.Tensor) -> torch.Tensor:
+def _tangent_fields(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor,
+                    tangents: torch.Tensor) -> torch.Tensor:
     """``d decode(z, mu)[t]`` for each of the tangents ``(d, B, r)``: ``(d, B, C, *grid)``.
 
     One forward-mode pass vmapped over the tangents (the primal pass is shared, about 2-3x faster than
@@ -121,7 +122,7 @@ def _tangent_fields(model: Any, z: torch.Tensor, mu: torch.Tensor, tangents: tor
         return out.detach().reshape(d, batch, *out.shape[1:])
 
 
-def ensemble_variance(model: Any, ensemble: torch.Tensor, mu: torch.Tensor,
+def ensemble_variance(model: FilterableModel, ensemble: torch.Tensor, mu: torch.Tensor,
                       center: torch.Tensor | None = None) -> torch.Tensor:
     """Sample variance (divisor ``n - 1``) over the members of the decoded ensemble ``(B, n, r)``: ``(B, C, n_cells)``.
 
@@ -147,7 +148,7 @@ def ensemble_variance(model: Any, ensemble: torch.Tensor, mu: torch.Tensor,
     return ((s2 - s1.pow(2) / n) / (n - 1)).clamp_min(0.0)
 
 
-def reconstruction_variance(model: Any, dataset: Dataset | str, trajectories: Sequence[int] | np.ndarray,
+def reconstruction_variance(model: LatentModel, dataset: Dataset | str, trajectories: Sequence[int] | np.ndarray,
                             split: str = "train") -> np.ndarray:
     """The decoder's reconstruction-error variance per cell, ``(C, *grid)`` float64, physical units squared.
 

@@ -3,7 +3,8 @@
 ``build_model(benchmark, model, r=32, preset="paper" | "lite")`` returns a :class:`LatentModel` with the
 uniform interface ``encode``/``decode`` (physical units), ``forecast``/``forecast_jacobian`` and
 ``observe``, batched over a leading dimension. :func:`train_model` trains one (Eqs. 10-11) into a
-checkpoint and :func:`load_model` loads a trained one (or trains it when asked).
+checkpoint and :func:`load_model` loads a trained one (or trains it when asked); a :class:`ModelSpec` names
+one for a wrapper. :class:`FilterableModel` is the Protocol of what the filters need of any model.
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ from .checkpoint import (
 from .embedding import ParameterEmbedding
 from .koopman import KoopmanOperator, dissipative_generator
 from .build import NEURAL_MAPS, build_model
-from .latent_model import KoopmanModel, LatentModel, NeuralLatentModel, count_parameters, model_device
+from .latent_model import KoopmanModel, LatentModel, NeuralLatentModel, count_parameters, model_device, model_dtype
 from .mlp import MLPTransition
 from .pdmd import PDMD, streamed_pod
+from .protocol import FILTERABLE_MEMBERS, FilterableModel, missing_members
 from .presets import (
     BENCHMARK_SHAPES,
     MODEL_KINDS,
@@ -47,10 +49,12 @@ from .training import (
     training_loss,
     training_schedule,
 )
+from .spec import ModelSpec
 from .xlstm import XLSTMTransition, xlstm_block_stack
 
 __all__ = [
     "BENCHMARK_SHAPES",
+    "FILTERABLE_MEMBERS",
     "MODEL_KINDS",
     "MODEL_PRESETS",
     "NEURAL_MAPS",
@@ -63,10 +67,12 @@ __all__ = [
     "CheckpointMissing",
     "ConvDecoder",
     "ConvEncoder",
+    "FilterableModel",
     "KoopmanModel",
     "KoopmanOperator",
     "LatentModel",
     "MLPTransition",
+    "ModelSpec",
     "NeuralLatentModel",
     "ParameterEmbedding",
     "ParametricEncoder",
@@ -83,7 +89,9 @@ __all__ = [
     "dissipative_generator",
     "load_model",
     "locate_model",
+    "missing_members",
     "model_device",
+    "model_dtype",
     "model_from_checkpoint",
     "one_step_error",
     "read_checkpoint",

@@ -429,8 +429,19 @@ class KoopmanModel(NeuralLatentModel):
 
 def model_device(model: Any) -> torch.device:
     """The device a model's buffers live on (CPU for a model without tensors)."""
+    tensor = _first_tensor(model)
+    return tensor.device if tensor is not None else torch.device("cpu")
+
+
+def model_dtype(model: Any) -> torch.dtype:
+    """The floating dtype of a model's buffers (float32 for a model without floating tensors)."""
+    tensor = _first_tensor(model)
+    return tensor.dtype if tensor is not None and tensor.is_floating_point() else torch.float32
+
+
+def _first_tensor(model: Any) -> torch.Tensor | None:
+    """The normalization buffer ``stats_mean``, else the first parameter, else None."""
     buffer = getattr(model, "stats_mean", None)
     if isinstance(buffer, torch.Tensor):
-        return buffer.device
-    first = next(iter(model.parameters()), None) if hasattr(model, "parameters") else None
-    return first.device if first is not None else torch.device("cpu")
+        return buffer
+    return next(iter(model.parameters()), None) if hasattr(model, "parameters") else None

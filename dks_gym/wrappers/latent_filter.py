@@ -11,8 +11,9 @@ with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env
   ``info["normalized_mse"]``, ``gain_norm``, ``spread`` and (EKF) ``forecast_norm`` = ||F_k||_2;
 * with ``uncertainty=True`` (default) ``info["estimate_std"]``, the predictive std of every cell
   (``(C, *grid)``, physical units: the filter's latent covariance pushed through the decoder, plus the
-  decoder's reconstruction variance when given), and its scores ``coverage`` (of the central 95 %
-  interval), ``nees`` (mean per cell) and ``crps`` over the scored channels;
+  decoder's reconstruction variance: ``Uncertainty(reconstruction_var=...)``, else the model's calibrated
+  one), and its scores ``coverage`` (of the central 95 % interval), ``nees`` (mean per cell) and ``crps``
+  over the scored channels;
   wall time per DA step is in ``wrapper.filter.diagnostics`` (in info it would break determinism);
 * reward: minus the MSE over the scored channels against ``env.unwrapped.true_state`` (physical units),
   or over standardized channels with ``reward="normalized_mse"``.
@@ -20,89 +21,53 @@ with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import torch
-from gymnasium import spaces
 
-from ..assimilation import Assimilation, FilterConfig, Snapshot, resolve_model, tune_if_missing
+from ..assimilation import FilterConfig, ModelLike, Snapshot
 from ..envs.sensing import SensingEnv
-
-REWARDS = ("mse", "normalized_mse")
-
-
-def build_assimilation(base: SensingEnv, model: Any, filter: str | None, config: FilterConfig | None, *,
-                       r: int | None, model_preset: str, T: int, reward: str, device: str, dtype: torch.dtype,
-                       train_if_missing: bool, uncertainty: bool = True,
-                       reconstruction_var: Any = None) -> Assimilation:
-    """The assimilation core a filter wrapper runs: the model resolved for the env's dataset, the config
-    with ``filter`` (when given) as its kind. Shared by :class:`LatentFilter` and the vector env."""
-    if reward not in REWARDS:
-        raise ValueError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
-    config = FilterConfig() if config is None else config
-    if not isinstance(config, FilterConfig):
-        raise TypeError(f"config must be a dks_gym.FilterConfig, got {type(config).__name__}")
-    if filter is not None:
-        config = dataclasses.replace(config, kind=filter)
-    latent = resolve_model(model, base.benchmark.name, r=r, preset=model_preset, T=T, device=device,
-                           train_if_missing=train_if_missing, dataset=base.dataset)
-    if train_if_missing and isinstance(model, str):  # asked to prepare a missing model: tune it too
-        tune_if_missing(latent, base.dataset)
-    return Assimilation(latent, config, device=device, dtype=dtype, uncertainty=uncertainty,
-                        reconstruction_var=reconstruction_var)
-
-
-def belief_space(r: int) -> spaces.Box:
-    """The belief [mean z (r); log diag P (r)] as a float32 Box."""
-    big = np.finfo(np.float32).max
-    return spaces.Box(-big, big, shape=(2 * r,), dtype=np.float32)
+from .building import Uncertainty, belief_space, build_assimilation, refuses_moved_keywords
 
 
 class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Assimilate a SensingEnv's readings into a latent model's state with an EKF, an EnKF or a forward run.
 
-    ``model``: "koopman", "pdmd", "mlp", "xlstm" (a cached checkpoint of ``model_preset``, ``r``
-    (default 32) and multi-step horizon ``T``, trained on the env's dataset; ``train_if_missing=True`` trains
-    it, otherwise a missing checkpoint raises ``CheckpointMissing``) or a model object.
+    ``model``: a model object (a :class:`~dks_gym.models.FilterableModel`, e.g. from
+    :func:`~dks_gym.load_model`), a kind name ("koopman", "pdmd", "mlp", "xlstm": the user's cached or the
+    shipped lite model with r = 32, T = 1, on the CPU, for the env's dataset; a missing one raises
+    ``CheckpointMissing``) or a :class:`~dks_gym.models.ModelSpec` for any other lookup (``r``, ``preset``,
+    ``T``, ``device``; ``train_if_missing=True`` trains a missing model and tunes its Q scale). The filter
+    runs on the model's device and in its dtype.
     ``filter``: "ekf", "enkf" or "forward" (default: ``config.kind``, "ekf"). ``config``: a
     :class:`~dks_gym.FilterConfig` with everything else (initial condition, P0, Q, ensemble size, inflation,
     localization, divergence policy, seed); R = sigma^2 I comes from the env.
     ``uncertainty``: put ``estimate_std`` and its scores (``coverage``, ``nees``, ``crps``) in ``info``
     (default True; it costs r decoder Jacobian-vector products per step, or one decode per EnKF member:
-    False for speed). ``reconstruction_var``: the decoder's reconstruction-error variance per cell
-    ``(C, *grid)`` (:func:`~dks_gym.assimilation.reconstruction_variance`), added to the variance.
+    False for speed); :class:`~dks_gym.wrappers.Uncertainty` ``(reconstruction_var=...)`` switches it on with
+    the decoder's reconstruction-error variance per cell ``(C, *grid)`` of your choice
+    (:func:`~dks_gym.assimilation.reconstruction_variance`; default the model's calibrated one).
     """
 
+    @refuses_moved_keywords
     def __init__(
         self,
         env: gym.Env,
-        model: Any = "koopman",
+        model: ModelLike = "koopman",
         filter: str | None = None,
         *,
         config: FilterConfig | None = None,
-        r: int | None = None,
-        model_preset: str = "lite",
-        T: int = 1,
         reward: str = "mse",
-        device: str = "cpu",
-        dtype: torch.dtype = torch.float32,
-        train_if_missing: bool = False,
-        uncertainty: bool = True,
-        reconstruction_var: Any = None,
+        uncertainty: bool | Uncertainty = True,
     ) -> None:
-        args = {k: v for k, v in locals().items() if k not in ("self", "env", "__class__")}
-        gym.utils.RecordConstructorArgs.__init__(self, **args)
+        gym.utils.RecordConstructorArgs.__init__(self, model=model, filter=filter, config=config, reward=reward,
+                                                 uncertainty=uncertainty)
         super().__init__(env)
         base = env.unwrapped
         if not isinstance(base, SensingEnv):
             raise TypeError(f"LatentFilter wraps a dks_gym SensingEnv, got {type(base).__name__}")
-        self.assimilation = build_assimilation(base, model, filter, config, r=r, model_preset=model_preset, T=T,
-                                               reward=reward, device=device, dtype=dtype,
-                                               train_if_missing=train_if_missing, uncertainty=uncertainty,
-                                               reconstruction_var=reconstruction_var)
+        self.assimilation = build_assimilation(base, model, filter, config, reward=reward, uncertainty=uncertainty)
         self.model = self.assimilation.model
         self.config = self.assimilation.config
         self.reward_kind = reward

@@ -15,54 +15,45 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from ..assimilation import FilterConfig, Snapshot
+from ..assimilation import FilterConfig, ModelLike, Snapshot
 from ..envs.sensing import SensingEnv
-from .latent_filter import belief_space, build_assimilation
+from .building import Uncertainty, belief_space, build_assimilation, refuses_moved_keywords
 
 
 class LatentFilterVectorEnv(VectorEnv):
     """``num_envs`` SensingEnvs of one benchmark assimilated by one batched EKF/EnKF (or forward run).
 
-    ``model``, ``filter``, ``config`` and the model options are those of :class:`~dks_gym.wrappers.LatentFilter`;
-    every other keyword goes to each :class:`~dks_gym.envs.SensingEnv` (``preset``, ``sensor_mode``,
-    ``noise_level`` ...). ``uncertainty`` (default True) puts ``estimate_std`` (N, C, *grid) and the scores
-    ``coverage``, ``nees``, ``crps`` (N,) in the infos; ``uncertainty=False`` skips their cost (RL training).
-    ``reconstruction_var``: as for :class:`~dks_gym.wrappers.LatentFilter`.
+    ``model`` (a kind name, a :class:`~dks_gym.models.ModelSpec` or a model object), ``filter``, ``config``,
+    ``reward`` and ``uncertainty`` are those of :class:`~dks_gym.wrappers.LatentFilter`; every other keyword
+    goes to each :class:`~dks_gym.envs.SensingEnv` (``preset``, ``sensor_mode``, ``noise_level`` ...).
+    ``uncertainty`` (default True) puts ``estimate_std`` (N, C, *grid) and the scores ``coverage``, ``nees``,
+    ``crps`` (N,) in the infos; ``uncertainty=False`` skips their cost (RL training).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
 
+    @refuses_moved_keywords
     def __init__(
         self,
         benchmark: str,
         num_envs: int = 1,
         *,
-        model: Any = "koopman",
+        model: ModelLike = "koopman",
         filter: str | None = None,
         config: FilterConfig | None = None,
-        r: int | None = None,
-        model_preset: str = "lite",
-        T: int = 1,
         reward: str = "mse",
-        device: str = "cpu",
-        dtype: torch.dtype = torch.float32,
-        train_if_missing: bool = False,
-        uncertainty: bool = True,
-        reconstruction_var: Any = None,
+        uncertainty: bool | Uncertainty = True,
         **env_kwargs: Any,
     ) -> None:
         if not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         self.envs = [SensingEnv(benchmark, **env_kwargs) for _ in range(num_envs)]
         self.benchmark = self.envs[0].benchmark
-        self.assimilation = build_assimilation(self.envs[0], model, filter, config, r=r, model_preset=model_preset,
-                                               T=T, reward=reward, device=device, dtype=dtype,
-                                               train_if_missing=train_if_missing, uncertainty=uncertainty,
-                                               reconstruction_var=reconstruction_var)
+        self.assimilation = build_assimilation(self.envs[0], model, filter, config, reward=reward,
+                                               uncertainty=uncertainty)
         self.model = self.assimilation.model
         self.config = self.assimilation.config
         self.num_envs = num_envs
