@@ -95,20 +95,14 @@ def test_no_module_or_function_over_its_limit() -> None:
 # The checker itself -------------------------------------------------------------------------------------------
 
 
-def _write(root: Path, files: dict[str, str]) -> Path:
-    for rel, text in files.items():
-        path = root / rel
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text)
-    return root
-
-
 def _function(name: str, n_lines: int, indent: str = "") -> str:
     """A function of exactly ``n_lines`` lines at ``indent``."""
     return f"{indent}def {name}():\n" + f"{indent}    x = 1\n" * (n_lines - 1)
 
 
 def test_checker_counts_modules_functions_methods_and_nested_functions(tmp_path: Path) -> None:
+    from tests.test_imports import _write  # inside the test: the script entry point does not need it
+
     nested = "def outer():\n" + _function("inner", 81, "    ")  # outer: 82 lines, inner: 81
     repo = _write(tmp_path, {
         "dks_gym/ok.py": _function("short", 80) + "x = 1\n" * 420,  # 500 lines, an 80-line function
@@ -126,6 +120,8 @@ def test_checker_counts_modules_functions_methods_and_nested_functions(tmp_path:
 
 
 def test_a_module_marked_whole_with_a_reason_is_exempt(tmp_path: Path) -> None:
+    from tests.test_imports import _write
+
     long = _function("long", 81) + "x = 1\n" * 500
     repo = _write(tmp_path, {
         "dks_gym/comment.py": "# whole: one lookup table, split it and it reads worse\n" + long,
