@@ -198,6 +198,7 @@ class SweepPlan:
 
     @property
     def shape(self) -> tuple[int, ...]:
+        """The lattice's nodes (nx, ny, nz)."""
         return self.solid.shape
 
     @property
