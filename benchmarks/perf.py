@@ -44,9 +44,10 @@ from dks_gym.atomic import atomic_write_text
 from dks_gym.dataset import generate_dataset, load_dataset
 from dks_gym.envs.noise import measurement_noise
 from dks_gym.filters import EKF, LatentDynamics
-from dks_gym.filters.common import GaussianState, forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
+from dks_gym.filters.dynamics import GaussianState
 from dks_gym.filters.ekf import ekf_forecast, ekf_update
 from dks_gym.filters.enkf import enkf_forecast, enkf_update
+from dks_gym.filters.jacobians import forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
 from dks_gym.models import build_model
 from dks_gym.models.training import training_loss
 from dks_gym.wrappers import LatentFilter, LatentFilterVectorEnv

@@ -132,7 +132,7 @@ def test_ekf_equals_filterpy_kalman_filter_on_linear_gaussian_system(constant_ja
 
 def test_spectral_norm_equals_the_largest_singular_value():
     """The diagnostics take ||M||_2 from the smaller Gram matrix; it must match numpy's SVD, both orientations."""
-    from dks_gym.filters.common import spectral_norm
+    from dks_gym.filters.diagnostics import spectral_norm
 
     torch.manual_seed(0)
     for shape in [(7, 32, 16), (7, 16, 32), (5, 32, 32), (3, 1, 8)]:
@@ -758,7 +758,7 @@ def test_bias_augmentation_keeps_a_jacobian_that_brings_its_readings():
     """A model's observe_jacobian may return (h, J) (the sensor-local decoder): the augmented one returns
     (h + b, [J, I]) and filters like the plain-J version."""
     from dks_gym.filters import augment_with_bias
-    from dks_gym.filters.common import observe_with_jacobian
+    from dks_gym.filters.jacobians import observe_with_jacobian
 
     sys = linear_system(seed=32)
     Ht = torch.tensor(sys["H"])

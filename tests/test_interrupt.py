@@ -105,8 +105,8 @@ def test_signal_while_the_cli_writes_a_dataset_leaves_nothing(tmp_path: Path, si
     file (the Burgers solve runs lazily, inside the write, which is where a long generation spends its time)."""
     home = tmp_path / "home"
     proc = _start("""
-import dks_gym.dataset as dataset
-write = dataset._write
+import dks_gym.dataset.writer as writer
+write = writer._write
 
 def paced_write(data, bench, tmp, extra_attrs):
     trajectories = data.trajectories
@@ -121,7 +121,7 @@ def paced_write(data, bench, tmp, extra_attrs):
     data.trajectories = paced()
     return write(data, bench, tmp, extra_attrs)
 
-dataset._write = paced_write
+writer._write = paced_write
 from dks_gym.cli import main
 sys.argv = ["dks-gym", "data", "generate", "burgers", "--preset", "small"]
 main()

@@ -228,7 +228,7 @@ def test_sensor_local_jacobian_is_used_only_where_a_window_saves_work():
 
 
 def test_sphere_sensor_local_jacobian_equals_autodiff_through_the_whole_decoder():
-    from dks_gym.filters.common import value_and_jacobian
+    from dks_gym.filters.jacobians import value_and_jacobian
 
     model = _lite("sphere", "mlp", r=4)
     n_cells = int(np.prod(model.grid))

@@ -217,7 +217,7 @@ def test_initial_latent_recomputed_from_encode(models: dict, kind: str) -> None:
 @pytest.mark.parametrize("kind", ["koopman", "mlp", "pdmd"])
 def test_observation_jacobian_is_autograd_of_decode_at_the_sensors(models: dict, kind: str) -> None:
     """J the EKF uses = torch.autograd.functional.jacobian of z -> decode(z, mu)[sensor cells]."""
-    from dks_gym.filters.common import observe_with_jacobian
+    from dks_gym.filters.jacobians import observe_with_jacobian
 
     model = models[kind]
     env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter="ekf")

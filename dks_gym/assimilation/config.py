@@ -20,7 +20,7 @@ import torch
 from ..dataset import SPLITS
 from ..envs.faults import SensorFaults
 from ..filters import EKF, EnKF, LatentDynamics, augment_with_bias, augmented_covariance
-from ..filters.common import as_covariance, check_covariance_spec
+from ..filters.covariance import as_covariance, check_covariance_spec
 from ..filters.enkf import Localization
 from ..models import FilterableModel
 from ..names import FILTERS

@@ -255,7 +255,7 @@ class Assimilation:
     def history(self) -> dict[str, np.ndarray | None]:
         """Over the steps so far: ``forecast_norm`` (n, B) (None for the EnKF), ``step_seconds`` (n,), and
         ``divergence_resets`` (B,), how many times each element was restarted, ``gain_norm`` and ``spread``
-        (n, B) (see :class:`~dks_gym.filters.common.Diagnostics`). With late readings the first steps, while
+        (n, B) (see :class:`~dks_gym.filters.diagnostics.Diagnostics`). With late readings the first steps, while
         the filter waits for its first reading, have gain 0 and NaN spread and forecast norm; ``step_seconds``
         holds the filter's steps only."""
         d = self._filter.diagnostics

@@ -184,6 +184,49 @@ def _layout_positions(readers: list[SensingEnv], which: np.ndarray, layouts: np.
     return positions
 
 
+class _SensorReadings:
+    """Where each step's readings come from (see the module docstring): the envs' own layouts, fixed
+    ``layouts`` read out of envs that several episodes may share, or the layouts ``decide`` chooses."""
+
+    def __init__(self, envs: Sequence[SensingEnv], layouts: np.ndarray | None,
+                 decide: Callable[[np.ndarray], np.ndarray] | None) -> None:
+        self.envs, self.decide = envs, decide
+        self.readers, self.which = _distinct(envs)
+        if decide is not None and len(self.readers) != len(envs):
+            raise ValueError("with decide, every episode needs an env of its own")
+        self.layouts = None
+        if layouts is not None:
+            self.layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
+            self.positions = _layout_positions(self.readers, self.which, self.layouts)
+
+    def start(self, n_t: int) -> None:
+        """Make room for the layouts ``decide`` chooses at frames 1..n_t-1 and the time it takes."""
+        if self.decide is not None:
+            self.chosen = np.empty((len(self.envs), n_t - 1, self.envs[0].n_sensors), dtype=np.int64)
+            self.decision_seconds = np.empty(n_t - 1)
+
+    def step(self, k: int, core: Assimilation) -> tuple[np.ndarray, np.ndarray]:
+        """Step the envs to frame ``k``; return the readings (B, m) and the sensors they come from (B, m)."""
+        if self.decide is not None:
+            tic = time.perf_counter()
+            actions = np.asarray(self.decide(core.belief()))
+            self.decision_seconds[k - 1] = time.perf_counter() - tic
+            steps = [env.step(a) for env, a in zip(self.envs, actions)]
+            readings = np.stack([s[0] for s in steps])
+            sensors = self.chosen[:, k - 1] = np.stack([s[4]["sensors"] for s in steps])
+            return readings, sensors
+        steps = [env.step(None) for env in self.readers]
+        if self.layouts is None:
+            return np.stack([steps[i][0] for i in self.which]), np.stack([steps[i][4]["sensors"] for i in self.which])
+        return np.stack([s[0] for s in steps])[self.which[:, None], self.positions], self.layouts
+
+    def extras(self) -> dict[str, Any]:
+        """The result's ``extras``: the layouts read (and with ``decide`` the time it took), if not the envs'."""
+        if self.decide is not None:
+            return {"layouts": self.chosen, "decision_seconds": self.decision_seconds}
+        return {} if self.layouts is None else {"layouts": self.layouts}
+
+
 def run_episodes(
     model: Any,
     envs: Sequence[SensingEnv],
@@ -210,18 +253,13 @@ def run_episodes(
     if layouts is not None and decide is not None:
         raise ValueError("give layouts (fixed per episode) or decide (chosen per step), not both")
     start = time.perf_counter()
-    readers, which = _distinct(envs)
-    if decide is not None and len(readers) != len(envs):
-        raise ValueError("with decide, every episode needs an env of its own")
-    if layouts is not None:
-        layouts = np.atleast_2d(np.asarray(layouts, dtype=np.int64))
-        positions = _layout_positions(readers, which, layouts)
+    source = _SensorReadings(envs, layouts, decide)
     n_t = envs[0].dataset.n_frames
     if n_t < 2:
         raise ValueError(f"{envs[0].dataset.path} has {n_t} frame(s); assimilation needs at least 2")
     core = Assimilation(model, config.filter, dtype=dtype, uncertainty=uncertainty,
                         reconstruction_var=reconstruction_var)
-    snap = core.start(envs, seed=config.filter.seed, sensors=layouts)
+    snap = core.start(envs, seed=config.filter.seed, sensors=source.layouts)
     batch = len(envs)
     step_mse = np.empty((batch, n_t), dtype=np.float64)
     step_mse[:, 0] = snap.mse
@@ -229,37 +267,22 @@ def run_episodes(
         if uncertainty else {}
     for name, values in scores.items():
         values[:, 0] = getattr(snap, name)
-    extras: dict[str, Any] = {}
-    if decide is not None:
-        chosen = np.empty((batch, n_t - 1, envs[0].n_sensors), dtype=np.int64)
-        decision_seconds = np.empty(n_t - 1)
+    source.start(n_t)
     bar = tqdm(range(1, n_t), desc=description or f"{model.kind} {config.filter.kind}", unit="step", leave=False,
                disable=not progress, dynamic_ncols=True)
     for k in bar:
-        if decide is not None:
-            tic = time.perf_counter()
-            actions = np.asarray(decide(core.belief()))
-            decision_seconds[k - 1] = time.perf_counter() - tic
-            steps = [env.step(a) for env, a in zip(envs, actions)]
-            readings = np.stack([s[0] for s in steps])
-            sensors = chosen[:, k - 1] = np.stack([s[4]["sensors"] for s in steps])
-        else:
-            steps = [env.step(None) for env in readers]
-            if layouts is None:
-                readings = np.stack([steps[i][0] for i in which])
-                sensors = np.stack([steps[i][4]["sensors"] for i in which])
-            else:
-                readings = np.stack([s[0] for s in steps])[which[:, None], positions]
-                sensors = layouts
-        snap = core.step(envs, readings, sensors)
+        snap = core.step(envs, *source.step(k, core))
         step_mse[:, k] = snap.mse
         for name, values in scores.items():
             values[:, k] = getattr(snap, name)
     bar.close()
-    if decide is not None:
-        extras = {"layouts": chosen, "decision_seconds": decision_seconds}
-    elif layouts is not None:
-        extras = {"layouts": layouts}
+    return _result(model, config, envs, core, snap, step_mse, scores, source.extras(), start)
+
+
+def _result(model: Any, config: AssimilationConfig, envs: Sequence[SensingEnv], core: Assimilation, snap: Any,
+            step_mse: np.ndarray, scores: dict[str, np.ndarray], extras: dict[str, Any],
+            start: float) -> AssimilationResult:
+    """The :class:`AssimilationResult` of a finished loop: the records, the final fields and their errors."""
     history = core.history()
     bench, truth = envs[0].benchmark, core.truth(envs)
     channel_std = torch.as_tensor(envs[0].dataset.stats_std)

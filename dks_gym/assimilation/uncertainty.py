@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..dataset import Dataset
-from ..filters.common import psd_sqrt
+from ..filters.covariance import psd_sqrt
 from ..models import FilterableModel, LatentModel
 from ..models.training import calibrate
 

@@ -8,17 +8,13 @@ Model-independent and batched: a model enters only as a :class:`LatentDynamics` 
 """
 
 from .bias import augment_with_bias, augmented_covariance
-from .common import (
-    Diagnostics,
-    FilterDivergence,
-    GaussianState,
-    LatentDynamics,
-    as_covariance,
-    bind_param,
-    value_and_jacobian,
-)
+from .covariance import as_covariance
+from .diagnostics import Diagnostics
+from .divergence import FilterDivergence
+from .dynamics import GaussianState, LatentDynamics, bind_param
 from .ekf import EKF, ekf_forecast, ekf_update
 from .enkf import EnKF, enkf_forecast, enkf_update, ensemble_state, initial_ensemble, schur_localization
+from .jacobians import value_and_jacobian
 
 __all__ = [
     "EKF",

@@ -17,7 +17,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .common import CovarianceSpec, LatentDynamics, as_covariance
+from .covariance import CovarianceSpec, as_covariance
+from .dynamics import LatentDynamics
 
 
 def _bias_block(x: Tensor, m: int) -> tuple[Tensor, Tensor]:

@@ -21,26 +21,14 @@ import copy
 import torch
 from torch import Tensor
 
-from .common import (
-    CovarianceSpec,
-    DivergencePolicy,
-    GaussianState,
-    JacobianMethod,
-    LatentDynamics,
-    SequentialFilter,
-    StepTimer,
-    as_covariance,
-    check_mask,
-    check_measurement,
-    cholesky_or_nan,
-    forecast_with_jacobian,
-    mask_measurement,
-    nonfinite_elements,
-    observe_with_jacobian,
-    raise_if_diverged,
-    spectral_norm,
-    symmetrize,
-)
+from .batch_elements import nonfinite_elements
+from .covariance import CovarianceSpec, as_covariance, cholesky_or_nan, symmetrize
+from .diagnostics import StepTimer, spectral_norm
+from .divergence import DivergencePolicy, raise_if_diverged
+from .dynamics import GaussianState, LatentDynamics
+from .jacobians import JacobianMethod, forecast_with_jacobian, observe_with_jacobian
+from .measurements import check_mask, check_measurement, mask_measurement
+from .sequential import SequentialFilter
 
 
 def ekf_forecast(
@@ -113,7 +101,7 @@ class EKF(SequentialFilter):
     process-noise covariance (default ``1e-4 I``); ``on_divergence``: ``"raise"`` (default) raises
     :class:`FilterDivergence` when an element's mean or covariance becomes non-finite, ``"reset"``
     restarts those elements from ``(z0, P0)`` and flags them in :attr:`diagnostics`;
-    ``jacobian_method``: see :func:`~dks_gym.filters.common.value_and_jacobian`.
+    ``jacobian_method``: see :func:`~dks_gym.filters.jacobians.value_and_jacobian`.
     """
 
     def __init__(

@@ -28,26 +28,14 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .common import (
-    CovarianceSpec,
-    DivergencePolicy,
-    GaussianState,
-    LatentDynamics,
-    SequentialFilter,
-    StepTimer,
-    apply_rows,
-    as_covariance,
-    check_mask,
-    check_measurement,
-    check_symmetric,
-    cholesky_or_nan,
-    mask_measurement,
-    nonfinite_elements,
-    psd_sqrt,
-    raise_if_diverged,
-    spectral_norm,
-    symmetrize,
-)
+from .batch_elements import nonfinite_elements
+from .covariance import CovarianceSpec, as_covariance, check_symmetric, cholesky_or_nan, psd_sqrt, symmetrize
+from .diagnostics import StepTimer, spectral_norm
+from .divergence import DivergencePolicy, raise_if_diverged
+from .dynamics import GaussianState, LatentDynamics
+from .jacobians import apply_rows
+from .measurements import check_mask, check_measurement, mask_measurement
+from .sequential import SequentialFilter
 
 Localization = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 Perturbations = Literal["centered", "raw"]

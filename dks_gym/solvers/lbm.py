@@ -197,6 +197,23 @@ class LBM:
         self.shape = tuple(int(s) for s in shape)
         if len(self.shape) != lat.d:
             raise ValueError(f"{lat.name} needs a {lat.d}D shape, got {self.shape}")
+        self._set_viscosity(nu)
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.smagorinsky = float(smagorinsky)
+        self.n = int(np.prod(self.shape))
+        self._set_geometry(solid, body)
+        self._set_collision(extra_viscosity)
+        self._set_boundaries(inlet_velocity, outlet, acceleration)
+        self._absorb = self._absorbing_layer(absorber, absorber_velocity)
+        self.f = torch.empty((self.batch, lat.q, *self.shape), device=self.device, dtype=dtype)
+        self.time = 0
+        self._step = torch.compile(self._step_impl, dynamic=False) if compile else self._step_impl
+        self.initialize()
+
+    # Set-up, in the order __init__ runs it -----------------------------------------------------------
+    def _set_viscosity(self, nu: Sequence[float] | np.ndarray) -> None:
+        """The cases' lattice viscosities, their relaxation times and the batch size, checked."""
         nu = np.atleast_1d(np.asarray(nu, dtype=np.float64))
         if nu.ndim != 1 or not np.all(np.isfinite(nu)) or np.any(nu <= 0):
             raise ValueError(f"nu must be a 1D array of positive lattice viscosities, got {nu}")
@@ -205,12 +222,11 @@ class LBM:
         if np.any(self.tau0 < 0.5 + 1e-5):
             raise ValueError(f"relaxation time too close to 1/2: {self.tau0.min()}")
         self.batch = nu.size
-        self.device = torch.device(device)
-        self.dtype = dtype
-        self.smagorinsky = float(smagorinsky)
-        self.n = int(np.prod(self.shape))
-        dev = {"device": self.device, "dtype": dtype}
 
+    def _set_geometry(self, solid: np.ndarray | None, body: np.ndarray | None) -> None:
+        """The lattice's velocities on the device, the solid and body masks, the bounce-back links from solid
+        nodes and the momentum-exchange links into the body."""
+        lat, dev = self.lattice, {"device": self.device, "dtype": self.dtype}
         solid = np.zeros(self.shape, bool) if solid is None else np.asarray(solid, bool)
         body = np.zeros(self.shape, bool) if body is None else np.asarray(body, bool)
         if solid.shape != self.shape or body.shape != self.shape:
@@ -219,7 +235,7 @@ class LBM:
             raise ValueError("body nodes must be solid")
         self.solid_np, self.body_np = solid, body
         self._solid = torch.as_tensor(solid, device=self.device)
-        self._fluid = (~self._solid).to(dtype).reshape(1, 1, self.n)
+        self._fluid = (~self._solid).to(self.dtype).reshape(1, 1, self.n)
         self.c = torch.as_tensor(lat.c, **dev)
         self.w = torch.as_tensor(lat.w, **dev).reshape(1, lat.q, 1)
         self.opp = torch.as_tensor(lat.opp, device=self.device)
@@ -237,7 +253,12 @@ class LBM:
             )
             from_body = torch.stack([torch.roll(torch.as_tensor(body, device=self.device), s, dims) for s in shifts])
             from_body &= ~self._solid
-            self._from_body = from_body[(slice(None), *self._force_box)].to(dtype)
+            self._from_body = from_body[(slice(None), *self._force_box)].to(self.dtype)
+
+    def _set_collision(self, extra_viscosity: np.ndarray | None) -> None:
+        """What the collision needs beyond the lattice: the momentum-flux components of the Smagorinsky term
+        and the relaxation times per case (and per node, with a sponge's extra viscosity)."""
+        lat, dev = self.lattice, {"device": self.device, "dtype": self.dtype}
         # Non-equilibrium momentum flux components (a <= b) and their multiplicity in Pi:Pi.
         pairs = [(a, b) for a in range(lat.d) for b in range(a, lat.d)]
         self._cc = torch.as_tensor(np.array([lat.c[:, a] * lat.c[:, b] for a, b in pairs], float), **dev)
@@ -248,6 +269,12 @@ class LBM:
             if extra.shape != self.shape or np.any(extra < 0):
                 raise ValueError("extra_viscosity must be a non-negative array of the lattice shape")
             self._tau0 = self._tau0 + torch.as_tensor(extra / CS2, **dev).reshape(1, 1, self.n)
+
+    def _set_boundaries(
+        self, inlet_velocity: Sequence[float] | None, outlet: bool, acceleration: Sequence[float] | None
+    ) -> None:
+        """The velocity inlet (x-min), the pressure outlet (x-max) and the body force."""
+        lat, dev = self.lattice, {"device": self.device, "dtype": self.dtype}
         self.inlet_velocity = None
         if inlet_velocity is not None:  # (d,) uniform or (d, *shape[1:]) a profile over the inlet plane
             uin = torch.as_tensor(np.asarray(inlet_velocity, dtype=np.float64), **dev)
@@ -256,26 +283,31 @@ class LBM:
             self.inlet_velocity = uin.reshape(1, lat.d, -1)
         self.outlet = bool(outlet)
         self.acceleration = None if acceleration is None else torch.as_tensor(acceleration, **dev).reshape(1, lat.d, 1)
-        # Absorbing layer along x: f <- f - sigma(x) (f - f_eq(1, u_target)) after each step where sigma > 0.
-        self._absorb = None
-        if absorber is not None:
-            sigma = np.asarray(absorber, dtype=np.float64)
-            if sigma.shape != (self.shape[0],) or np.any(sigma < 0) or np.any(sigma > 1):
-                raise ValueError("absorber must be an array of strengths in [0, 1] along x")
-            start = int(np.flatnonzero(sigma > 0)[0]) if np.any(sigma > 0) else self.shape[0]
-            if absorber_velocity is not None:
-                target = torch.as_tensor(absorber_velocity, **dev).reshape(1, lat.d, 1)
-            elif self.inlet_velocity is not None:
-                target = self.inlet_velocity.mean(2, keepdim=True)
-            else:
-                target = torch.zeros((1, lat.d, 1), **dev)
-            fe = self.equilibrium(torch.ones((1, 1, 1), **dev), target).reshape(1, lat.q, *([1] * lat.d))
-            sig = torch.as_tensor(sigma[start:], **dev).reshape(1, 1, -1, *([1] * (lat.d - 1)))
-            self._absorb = (start, sig, fe)
-        self.f = torch.empty((self.batch, lat.q, *self.shape), **dev)
-        self.time = 0
-        self._step = torch.compile(self._step_impl, dynamic=False) if compile else self._step_impl
-        self.initialize()
+
+    def _absorbing_layer(
+        self, absorber: np.ndarray | None, absorber_velocity: Sequence[float] | None
+    ) -> tuple[int, torch.Tensor, torch.Tensor] | None:
+        """The absorbing layer along x as ``(first x index, sigma(x), f_eq of the target state)``, or None.
+
+        After each step ``f <- f - sigma(x) (f - f_eq(1, u_target))`` where sigma > 0; the target velocity is
+        ``absorber_velocity``, else the inlet's mean velocity, else 0.
+        """
+        if absorber is None:
+            return None
+        lat, dev = self.lattice, {"device": self.device, "dtype": self.dtype}
+        sigma = np.asarray(absorber, dtype=np.float64)
+        if sigma.shape != (self.shape[0],) or np.any(sigma < 0) or np.any(sigma > 1):
+            raise ValueError("absorber must be an array of strengths in [0, 1] along x")
+        start = int(np.flatnonzero(sigma > 0)[0]) if np.any(sigma > 0) else self.shape[0]
+        if absorber_velocity is not None:
+            target = torch.as_tensor(absorber_velocity, **dev).reshape(1, lat.d, 1)
+        elif self.inlet_velocity is not None:
+            target = self.inlet_velocity.mean(2, keepdim=True)
+        else:
+            target = torch.zeros((1, lat.d, 1), **dev)
+        fe = self.equilibrium(torch.ones((1, 1, 1), **dev), target).reshape(1, lat.q, *([1] * lat.d))
+        sig = torch.as_tensor(sigma[start:], **dev).reshape(1, 1, -1, *([1] * (lat.d - 1)))
+        return start, sig, fe
 
     # Equilibrium and moments ---------------------------------------------------------------------------
     def equilibrium(self, rho: torch.Tensor, u: torch.Tensor) -> torch.Tensor:

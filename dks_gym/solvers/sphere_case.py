@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 import time as _time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -173,6 +174,100 @@ def describe(settings: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+@dataclass(frozen=True)
+class SweepPlan:
+    """What every batch of one sphere sweep shares: the lattice and its geometry, the cases' viscosities,
+    the initial state, the step counts and what is recorded."""
+
+    resolution: int
+    u_lattice: float
+    solid: np.ndarray
+    body: np.ndarray
+    nu: np.ndarray  # lattice viscosity of every case of the sweep
+    sponge: np.ndarray | None  # absorber strengths along x
+    smagorinsky: float
+    u0: np.ndarray  # (3, *shape) initial velocity
+    n_spin: int
+    n_frame: int
+    n_frames: int
+    force_every: int | None  # lattice steps between force samples, None for none
+    area: float  # 1/2 rho U^2 pi R^2 in lattice units, the force coefficients' denominator
+    resampler: Resampler | None  # None: no fields are recorded
+    device: torch.device
+    compile: bool
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """The lattice's nodes (nx, ny, nz)."""
+        return self.solid.shape
+
+    @property
+    def total(self) -> int:
+        """Lattice steps from the start to the last frame."""
+        return self.n_spin + self.n_frame * (self.n_frames - 1)
+
+    @property
+    def frame_steps(self) -> dict[int, int]:
+        """``{lattice step: frame index}``."""
+        return {self.n_spin + k * self.n_frame: k for k in range(self.n_frames)}
+
+
+def plan_sweep(
+    re: np.ndarray,
+    s: dict[str, Any],
+    coords: tuple[np.ndarray, ...],
+    cell_type: np.ndarray,
+    device: torch.device,
+    compile: bool,
+    fields: bool,
+    force_every: int | None,
+) -> SweepPlan:
+    """The :class:`SweepPlan` of the Reynolds numbers ``re`` with the full settings ``s``."""
+    r, ul = int(s["resolution"]), float(s["u_lattice"])
+    ext = float(s["sponge"])
+    hw = float(s["half_width"])
+    if fields and (hw != 4.0 or not s["walls"]):
+        raise ValueError("half_width and walls may only be changed for force-only validation runs (fields=False)")
+    solid, body = geometry(r, ext, bool(s["walls"]), hw)
+    x, y, z = lattice_axes(r, ext, hw)
+    if not s["walls"]:
+        y = y[1:-1]
+    # Absorbing layer beyond the output domain (x > 16 R): strength rising as ((x - 16) / ext)^2 to sponge_strength.
+    sponge = None
+    if ext > 0:
+        sponge = float(s["sponge_strength"]) * np.clip((x - EXTENT[0][1]) / ext, 0.0, 1.0) ** 2
+    return SweepPlan(
+        resolution=r, u_lattice=ul, solid=solid, body=body, nu=ul * 2.0 * r / re, sponge=sponge,
+        smagorinsky=float(s["smagorinsky"]), u0=initial_velocity(x, y, z, ul, float(s["perturbation"])),
+        n_spin=steps_per(float(s["spin_up"]), r, ul), n_frame=steps_per(float(s["frame_dt"]), r, ul),
+        n_frames=int(s["n_frames"]), force_every=int(force_every) if force_every else None,
+        area=0.5 * ul**2 * math.pi * r**2,
+        resampler=Resampler(r, coords, cell_type, solid, device, ul, ext) if fields else None,
+        device=device, compile=bool(compile),
+    )  # fmt: skip
+
+
+def initial_velocity(x: np.ndarray, y: np.ndarray, z: np.ndarray, u_lattice: float, perturbation: float) -> np.ndarray:
+    """(3, nx, ny, nz) float32: U in the fluid plus a bump in v behind the sphere (x ~ 1.5 R, slightly off-axis)."""
+    bump = np.exp(-((x[:, None, None] - 1.5) ** 2 + y[None, :, None] ** 2 + (z[None, None, :] - 0.25) ** 2) / 0.5)
+    u0 = np.zeros((3, x.size, y.size, z.size), np.float32)
+    u0[0] = u_lattice
+    u0[1] = perturbation * u_lattice * bump
+    return u0
+
+
+def batch_size(plan: SweepPlan, grid: tuple[int, ...], max_batch: int | None) -> tuple[int, int]:
+    """``(cases per batch, bytes per case)``: what fits the device and, with fields, half the host's free memory
+    for one batch of frames; at most ``max_batch``."""
+    per_case = lbm.bytes_per_case("D3Q19", plan.shape, compiled=plan.compile)
+    size = lbm.max_batch(per_case, plan.device)
+    if plan.resampler is not None:
+        size = min(size, lbm.max_batch(plan.n_frames * 4 * int(np.prod(grid)) * 4, "cpu", fraction=0.5))
+    if max_batch is not None:
+        size = min(size, int(max_batch))
+    return size, per_case
+
+
 def run_batches(
     re: np.ndarray,
     settings: dict[str, Any],
@@ -195,94 +290,76 @@ def run_batches(
     is held in memory. ``info`` (a dict, filled in) receives the run's numbers (steps, batch size, time).
     """
     s = {**DEFAULTS, **settings}
-    r, ul = int(s["resolution"]), float(s["u_lattice"])
     re = np.atleast_1d(np.asarray(re, dtype=np.float64))
     dev = torch.device(device)
     if compile is None:
         compile = dev.type == "cuda"
-    ext = float(s["sponge"])
-    hw = float(s["half_width"])
-    if fields and (hw != 4.0 or not s["walls"]):
-        raise ValueError("half_width and walls may only be changed for force-only validation runs (fields=False)")
-    solid, body = geometry(r, ext, bool(s["walls"]), hw)
-    shape = solid.shape
-    x, y, z = lattice_axes(r, ext, hw)
-    if not s["walls"]:
-        y = y[1:-1]
-    nu = ul * 2.0 * r / re
-    # Absorbing layer beyond the output domain (x > 16 R): strength rising as ((x - 16) / ext)^2 to sponge_strength.
-    sponge = None
-    if ext > 0:
-        sponge = float(s["sponge_strength"]) * np.clip((x - EXTENT[0][1]) / ext, 0.0, 1.0) ** 2
-    n_spin = steps_per(float(s["spin_up"]), r, ul)
-    n_frame = steps_per(float(s["frame_dt"]), r, ul)
-    n_frames = int(s["n_frames"])
-    per_case = lbm.bytes_per_case("D3Q19", shape, compiled=bool(compile))
-    size = lbm.max_batch(per_case, dev)
-    if fields:  # one batch of frames on the host, at most half of its free memory
-        size = min(size, lbm.max_batch(n_frames * 4 * int(np.prod(cell_type.shape)) * 4, "cpu", fraction=0.5))
-    if max_batch is not None:
-        size = min(size, int(max_batch))
-    resampler = Resampler(r, coords, cell_type, solid, dev, ul, ext) if fields else None
-    area = 0.5 * ul**2 * math.pi * r**2
-    total = n_spin + n_frame * (n_frames - 1)
+    plan = plan_sweep(re, s, coords, cell_type, dev, compile, fields, force_every)
+    size, per_case = batch_size(plan, cell_type.shape, max_batch)
     n = re.size
     info = {} if info is None else info
-    info.update(lattice_shape=shape, batch_size=size, bytes_per_case=per_case, nu_lattice=nu,
-                steps={"spin_up": n_spin, "per_frame": n_frame, "total": total},
-                lattice_updates=float(n) * float(np.prod(shape)) * total)
-    if force_every:
-        info["force_time"] = np.arange(total // int(force_every) + 1) * int(force_every) * ul / r
-
-    # Initial velocity: U in the fluid plus a bump in v behind the sphere (x ~ 1.5 R, slightly off-axis).
-    bump = np.exp(-((x[:, None, None] - 1.5) ** 2 + y[None, :, None] ** 2 + (z[None, None, :] - 0.25) ** 2) / 0.5)
-    u0 = np.zeros((3, *shape), np.float32)
-    u0[0] = ul
-    u0[1] = float(s["perturbation"]) * ul * bump
+    info.update(lattice_shape=plan.shape, batch_size=size, bytes_per_case=per_case, nu_lattice=plan.nu,
+                steps={"spin_up": plan.n_spin, "per_frame": plan.n_frame, "total": plan.total},
+                lattice_updates=float(n) * float(np.prod(plan.shape)) * plan.total)
+    if plan.force_every:
+        every = plan.force_every
+        info["force_time"] = np.arange(plan.total // every + 1) * every * plan.u_lattice / plan.resolution
 
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=total * n, desc=f"sphere LBM r={r}", unit="case-step", unit_scale=True)
+        bar = tqdm(total=plan.total * n, desc=f"sphere LBM r={plan.resolution}", unit="case-step", unit_scale=True)
     t0 = _time.perf_counter()
-    frame_steps = {n_spin + k * n_frame: k for k in range(n_frames)}
     for part in lbm.chunks(n, size):
-        b = part.stop - part.start
-        res: dict[str, np.ndarray] = {k: np.zeros((b, n_frames)) for k in ("drag", "lift", "lift_z")}
-        if fields:
-            res["fields"] = np.zeros((b, n_frames, 4, *cell_type.shape), np.float32)
-        if force_every:
-            res["force_coefficients"] = np.zeros((b, info["force_time"].size, 3))
-        sim = lbm.LBM("D3Q19", shape, nu[part], solid=solid, body=body, inlet_velocity=(ul, 0.0, 0.0), outlet=True,
-                      absorber=sponge,
-                      smagorinsky=float(s["smagorinsky"]), device=dev, compile=bool(compile))
-        sim.initialize(u0)
-        for step in range(total + 1):
-            if step > 0:
-                sim.step()
-                if bar is not None:
-                    bar.update(b)
-            if force_every and step % int(force_every) == 0:
-                res["force_coefficients"][:, step // int(force_every)] = (sim.body_force() / area).cpu().numpy()
-            if step in frame_steps:
-                k = frame_steps[step]
-                bad = ~sim.is_finite().cpu().numpy()
-                if bad.any():
-                    raise RuntimeError(
-                        f"the lattice Boltzmann run diverged at Re = {re[part][bad]} (resolution {r}, "
-                        f"u_lattice {ul}); use a finer lattice or a lower u_lattice"
-                    )
-                coef = (sim.body_force() / area).cpu().numpy()
-                res["drag"][:, k], res["lift"][:, k], res["lift_z"][:, k] = coef[:, 0], coef[:, 1], coef[:, 2]
-                if fields:
-                    rho, u = sim.macroscopic()
-                    res["fields"][:, k] = resampler(rho, u).cpu().numpy()
-        del sim
-        yield part, res
+        yield part, run_batch(plan, part, re, cell_type.shape, bar)
     if bar is not None:
         bar.close()
     info["seconds"] = _time.perf_counter() - t0
+
+
+def run_batch(
+    plan: SweepPlan, part: slice, re: np.ndarray, grid: tuple[int, ...], bar: Any = None
+) -> dict[str, np.ndarray]:
+    """Run the cases ``part`` of the sweep together on one lattice; return their records (see :func:`run_batches`)."""
+    b = part.stop - part.start
+    res: dict[str, np.ndarray] = {k: np.zeros((b, plan.n_frames)) for k in ("drag", "lift", "lift_z")}
+    if plan.resampler is not None:
+        res["fields"] = np.zeros((b, plan.n_frames, 4, *grid), np.float32)
+    if plan.force_every:
+        res["force_coefficients"] = np.zeros((b, plan.total // plan.force_every + 1, 3))
+    ul = plan.u_lattice
+    sim = lbm.LBM("D3Q19", plan.shape, plan.nu[part], solid=plan.solid, body=plan.body, inlet_velocity=(ul, 0.0, 0.0),
+                  outlet=True, absorber=plan.sponge, smagorinsky=plan.smagorinsky, device=plan.device,
+                  compile=plan.compile)  # fmt: skip
+    sim.initialize(plan.u0)
+    frame_steps = plan.frame_steps
+    for step in range(plan.total + 1):
+        if step > 0:
+            sim.step()
+            if bar is not None:
+                bar.update(b)
+        if plan.force_every and step % plan.force_every == 0:
+            res["force_coefficients"][:, step // plan.force_every] = (sim.body_force() / plan.area).cpu().numpy()
+        if step in frame_steps:
+            record_frame(sim, plan, res, frame_steps[step], re[part])
+    return res
+
+
+def record_frame(sim: lbm.LBM, plan: SweepPlan, res: dict[str, np.ndarray], k: int, re: np.ndarray) -> None:
+    """Store frame ``k`` of the batch ``sim`` (Reynolds numbers ``re``) in ``res``: the force coefficients and,
+    with a resampler, the fields; a diverged case stops the run."""
+    bad = ~sim.is_finite().cpu().numpy()
+    if bad.any():
+        raise RuntimeError(
+            f"the lattice Boltzmann run diverged at Re = {re[bad]} (resolution {plan.resolution}, "
+            f"u_lattice {plan.u_lattice}); use a finer lattice or a lower u_lattice"
+        )
+    coef = (sim.body_force() / plan.area).cpu().numpy()
+    res["drag"][:, k], res["lift"][:, k], res["lift_z"][:, k] = coef[:, 0], coef[:, 1], coef[:, 2]
+    if plan.resampler is not None:
+        rho, u = sim.macroscopic()
+        res["fields"][:, k] = plan.resampler(rho, u).cpu().numpy()
 
 
 def simulate(re: np.ndarray, settings: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
@@ -325,14 +402,7 @@ def generate_sphere(
     iterated; ``workdir`` is unused (nothing is cached, so an interrupted generation starts again).
     """
     check_preset(preset)
-    allowed = set(SETTING_KEYS) - {"frame_dt", "walls", "half_width"}
-    unknown = set(options) - allowed
-    if unknown:
-        raise ValueError(
-            f"unknown option(s) for the sphere generator: {', '.join(sorted(unknown))}; it accepts preset, "
-            f"seed, workdir, progress, device, compile, max_batch and the solver settings {', '.join(sorted(allowed))}"
-        )
-    settings = {**DEFAULTS, **PRESET_SETTINGS[preset], **options, "frame_dt": benchmark.dt}
+    settings = generator_settings(preset, options, benchmark.dt)
     n_train, n_test = PRESET_COUNTS[preset]
     low, high = benchmark.param_range
     re_train, re_test = interleaved_sweep(low, high, n_train, n_test, np.random.default_rng(seed))
@@ -346,21 +416,51 @@ def generate_sphere(
         split: {k: np.zeros((n, n_frames)) for k in ("drag", "lift", "lift_z")}
         for split, n in (("train", n_train), ("test", n_test))
     }
-    info: dict[str, Any] = {}
+    # A generator function: nothing runs until the dataset layer reads the trajectories.
+    batches = run_batches(
+        re_all, settings, coords=coords, cell_type=cell_type, device=device, compile=compile,
+        max_batch=max_batch, progress=progress, info={},
+    )  # fmt: skip
+    return GeneratedData(
+        time=time,
+        params={"train": re_train, "test": re_test},
+        trajectories=split_trajectories(batches, n_train, extras),
+        generator=generator_metadata(preset, seed, settings, device),
+        coords=coords,
+        cell_type=cell_type,
+        extras=extras,
+    )
 
-    def trajectories() -> Iterator[tuple[str, int, np.ndarray]]:
-        batches = run_batches(
-            re_all, settings, coords=coords, cell_type=cell_type, device=device, compile=compile,
-            max_batch=max_batch, progress=progress, info=info,
+
+def generator_settings(preset: str, options: dict[str, Any], frame_dt: float) -> dict[str, Any]:
+    """The solver settings of ``preset`` with the generator's keyword ``options`` applied (unknown ones are an
+    error naming the known ones); ``frame_dt`` is the benchmark's."""
+    allowed = set(SETTING_KEYS) - {"frame_dt", "walls", "half_width"}
+    unknown = set(options) - allowed
+    if unknown:
+        raise ValueError(
+            f"unknown option(s) for the sphere generator: {', '.join(sorted(unknown))}; it accepts preset, "
+            f"seed, workdir, progress, device, compile, max_batch and the solver settings {', '.join(sorted(allowed))}"
         )
-        for part, res in batches:
-            for j, i in enumerate(range(part.start, part.stop)):
-                split, index = ("train", i) if i < n_train else ("test", i - n_train)
-                for key in ("drag", "lift", "lift_z"):
-                    extras[split][key][index] = res[key][j]
-                yield split, index, res["fields"][j]
+    return {**DEFAULTS, **PRESET_SETTINGS[preset], **options, "frame_dt": frame_dt}
 
-    generator: dict[str, Any] = {
+
+def split_trajectories(
+    batches: Iterator[tuple[slice, dict[str, np.ndarray]]], n_train: int, extras: dict[str, dict[str, np.ndarray]]
+) -> Iterator[tuple[str, int, np.ndarray]]:
+    """``(split, index, fields)`` of every case of the batches (train cases first), filling in ``extras``'
+    force coefficients as they come."""
+    for part, res in batches:
+        for j, i in enumerate(range(part.start, part.stop)):
+            split, index = ("train", i) if i < n_train else ("test", i - n_train)
+            for key in ("drag", "lift", "lift_z"):
+                extras[split][key][index] = res[key][j]
+            yield split, index, res["fields"][j]
+
+
+def generator_metadata(preset: str, seed: int, settings: dict[str, Any], device: str) -> dict[str, Any]:
+    """The generator's record in the dataset file: preset, seed, solver, boundaries, settings, lattice, units."""
+    return {
         # The generator's name since version 1, when it was a method of the benchmark; kept so that files
         # generated before and after the move are identical.
         "name": "dks_gym.benchmarks.sphere",
@@ -377,12 +477,3 @@ def generate_sphere(
         "time": "time counts from the first frame, taken after spin_up R/U from an impulsive start",
         "extras": "drag, lift (y), lift_z: force coefficients F / (0.5 U^2 pi R^2) at every frame",
     }
-    return GeneratedData(
-        time=time,
-        params={"train": re_train, "test": re_test},
-        trajectories=trajectories(),
-        generator=generator,
-        coords=coords,
-        cell_type=cell_type,
-        extras=extras,
-    )

@@ -1,0 +1,42 @@
+"""The HDF5 dataset layer (SPEC section 1): write atomically, validate on load, read lazily.
+
+* :mod:`.schema`: the file layout, its errors (:class:`SchemaError`, :class:`DatasetMissing`,
+  :class:`DataError`) and :func:`validate`, the check of an open file against it;
+* :mod:`.writer`: :func:`write_dataset` (a temporary file renamed into place when complete, under a lock)
+  and :func:`generate_dataset` (a benchmark's generator run into the data home);
+* :mod:`.reader`: :class:`Dataset`, a validated file read lazily, and :func:`load_dataset`.
+
+Files are written to a temporary name next to the target, under a lock (kept in ``$DKS_GYM_HOME/.locks``,
+see :mod:`dks_gym.locks`), and renamed into place only when complete, so a failed generation, Ctrl-C,
+SIGTERM or SIGHUP never leaves a file that looks valid, nor a temporary one. Reading refuses a damaged
+file or NaN/inf in a trajectory with :class:`DataError`, naming the file and what to do.
+"""
+
+from .reader import Dataset, load_dataset, missing_message
+from .schema import (
+    AXES,
+    REQUIRED_ATTRS,
+    SCHEMA_VERSION,
+    SPLITS,
+    DataError,
+    DatasetMissing,
+    SchemaError,
+    validate,
+)
+from .writer import generate_dataset, write_dataset
+
+__all__ = [
+    "AXES",
+    "REQUIRED_ATTRS",
+    "SCHEMA_VERSION",
+    "SPLITS",
+    "DataError",
+    "Dataset",
+    "DatasetMissing",
+    "SchemaError",
+    "generate_dataset",
+    "load_dataset",
+    "missing_message",
+    "validate",
+    "write_dataset",
+]
