@@ -17,6 +17,9 @@ from pathlib import Path
 from typing import Any
 
 from ..benchmarks import get_benchmark
+from ..assimilation import AssimilationConfig
+from ..dataset import Dataset
+from ..models import LatentModel
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart
 from .formatting import MISSING, fixed, mean_std, text_table
 from .results import RESULTS_FILE, Record, make_record, new_results, save_results
@@ -68,7 +71,7 @@ def first_run_message(train: bool = False) -> str:
     return f"dks-gym demo: {' and '.join(todo) + ', then ' if todo else ''}{run} with {models}."
 
 
-def _demo_models(ds: Any, *, train: bool, device: str, progress: bool) -> dict[str, Any]:
+def _demo_models(ds: Dataset, *, train: bool, device: str, progress: bool) -> dict[str, LatentModel]:
     """The four lite models: the user's or the shipped ones, or (``train``) trained and tuned into the data home,
     resuming or reusing what is there (``dks-gym train``'s path)."""
     from ..assimilation import tune_if_missing
@@ -86,7 +89,7 @@ def _demo_models(ds: Any, *, train: bool, device: str, progress: bool) -> dict[s
     return models
 
 
-def _demo_config(ds: Any, base: Any, device: str) -> dict[str, Any]:
+def _demo_config(ds: Dataset, base: AssimilationConfig, device: str) -> dict[str, Any]:
     """The results file's shared config: the filter settings, the data and the versions."""
     import torch
 
@@ -113,7 +116,7 @@ def run_demo(
     (resuming or reusing what is there) instead of taking the shipped ones."""
     from tqdm.auto import tqdm
 
-    from ..assimilation import AssimilationConfig, run_assimilation
+    from ..assimilation import run_assimilation
     from ..dataset import DatasetMissing, generate_dataset, load_dataset
     from ..home import data_home
     from ..models.checkpoint import dataset_identity

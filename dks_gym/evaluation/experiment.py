@@ -10,9 +10,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TypeVar
 
 from ..assimilation import AssimilationResult
+from ..dataset import Dataset
 from .tabulate import Records
 
 
@@ -82,7 +83,7 @@ class Experiment:
         return []
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Any = None) -> list[Path]:
+                dataset: Dataset | None = None) -> list[Path]:
         """Draw the experiment's figures into ``folder``; ``results`` (by :attr:`Run.cache_key`) and
         ``dataset`` are the run's own, when it just ran (fields are not in the records)."""
         return []

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..assimilation import AssimilationResult
+from ..dataset import Dataset
 from .experiment import Experiment, Run, Section, register
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart, reconstruction_figure, temporal_error_figure
 from .figures import timing_figure
@@ -155,7 +156,7 @@ class Main(Experiment):
             "physical units, as in the tables above.", tabulate(rows, columns)))]
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Any = None) -> list[Path]:
+                dataset: Dataset | None = None) -> list[Path]:
         cfg, written = records.config, []
         for initial in ("approximate", "exact"):
             crit = {"experiment": "main", "initial": initial}
@@ -174,7 +175,7 @@ class Main(Experiment):
         return written
 
 
-def _reconstruction(results: dict[tuple, AssimilationResult], dataset: Any, path: Path) -> list[Path]:
+def _reconstruction(results: dict[tuple, AssimilationResult], dataset: Dataset, path: Path) -> list[Path]:
     """Final-time truth / EKF estimate / error per model for the test trajectory with the smallest parameter."""
     found = {m: res for m in MODELS if (res := results.get(Run(m, "ekf").cache_key)) is not None}
     if not found:
@@ -222,7 +223,7 @@ class EnKF(Experiment):
         return [Section("EnKF, n = 20 (Table VII)", (tabulate(rows, columns),))]
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Any = None) -> list[Path]:
+                dataset: Dataset | None = None) -> list[Path]:
         crit = {"experiment": "enkf"}
         return _bars(folder / "enkf.png", [_panel(records, "(a) forward run", crit, filter="forward", **crit),
                                            _panel(records, "(b) EnKF n=20", crit, filter="enkf", n_members=20,
@@ -327,7 +328,7 @@ class Ensemble(Experiment):
                 "a gain near 0: it stops reading the sensors).", tabulate(rows, columns)]
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Any = None) -> list[Path]:
+                dataset: Dataset | None = None) -> list[Path]:
         crit = {"experiment": "ensemble"}
         return _bars(folder / "ensemble.png",
                      [_panel(records, f"EnKF n={n}", crit, filter="enkf", n_members=n, **crit) for n in self.SIZES],
@@ -353,7 +354,7 @@ class Noise(Experiment):
                         (tabulate([{"model": m} for m in MODELS], columns),))]
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Any = None) -> list[Path]:
+                dataset: Dataset | None = None) -> list[Path]:
         return _bars(folder / "noise.png", [_panel(records, f"EKF, {int(100 * s)}% noise", _scenario(noise=s),
                                                    filter="ekf", **_scenario(noise=s)) for s in (0.1, 0.3)],
                      f"{records.benchmark}: measurement noise")
@@ -387,7 +388,7 @@ class Latent(Experiment):
                         (tabulate(_varied_rows(records, "r", (16, 32, 64), MODELS), columns),))]
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Any = None) -> list[Path]:
+                dataset: Dataset | None = None) -> list[Path]:
         return _bars(folder / "latent.png", [_panel(records, f"EKF, r={r}", _scenario(r=r), filter="ekf",
                                                     **_scenario(r=r)) for r in (16, 64)],
                      f"{records.benchmark}: latent dimension (each panel ÷ MLP forward run at its r)")
@@ -413,7 +414,7 @@ class Multistep(Experiment):
                         (tabulate(_varied_rows(records, "T", (1, 2, 4, 8), ("koopman", "mlp")), columns),))]
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Any = None) -> list[Path]:
+                dataset: Dataset | None = None) -> list[Path]:
         panels = [_panel(records, f"T={t}: {name}", _scenario(T=t), filter=f, **_scenario(T=t))
                   for t in (2, 4, 8) for f, name in (("forward", "forward run"), ("ekf", "EKF"))]
         return _bars(folder / "multistep.png", panels,
@@ -472,7 +473,7 @@ class Timing(Experiment):
                         (tabulate(rows, columns),))]
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Any = None) -> list[Path]:
+                dataset: Dataset | None = None) -> list[Path]:
         written = []
         for initial in ("approximate", "exact"):
             recs = records.select(experiment="timing", initial=initial)

@@ -23,6 +23,8 @@ from typing import Any
 
 from ..assimilation import AssimilationConfig, AssimilationResult, run_assimilation, tune_if_missing
 from ..assimilation.config import PAPER_P0, PAPER_Q
+from ..dataset import Dataset
+from ..models import LatentModel
 from .experiment import EXPERIMENTS, Run, Section
 from .figures import MODEL_LABELS
 from .formatting import fixed, markdown_table, sci
@@ -89,7 +91,7 @@ def tables_markdown(doc: ResultsDocument) -> str:
 
 
 def write_figures(doc: ResultsDocument, folder: str | Path, *, cache: dict[tuple, AssimilationResult] | None = None,
-                  dataset: Any = None) -> list[Path]:
+                  dataset: Dataset | None = None) -> list[Path]:
     """The paper's figures for every experiment present in ``doc`` (reconstructions need this run's ``cache``)."""
     records = Records(doc)
     return [path for e in EXPERIMENTS.values() if e.present(records)
@@ -97,8 +99,9 @@ def write_figures(doc: ResultsDocument, folder: str | Path, *, cache: dict[tuple
 
 
 # Running ---------------------------------------------------------------------------------------------------
-def _dataset(benchmark: str, data_preset: str, dataset: Any, progress: bool, log: Callable[[str], None]) -> Any:
-    from ..dataset import Dataset, DatasetMissing, generate_dataset, load_dataset
+def _dataset(benchmark: str, data_preset: str, dataset: Dataset | str | Path | None, progress: bool,
+             log: Callable[[str], None]) -> Dataset:
+    from ..dataset import DatasetMissing, generate_dataset, load_dataset
 
     if dataset is not None:
         return dataset if isinstance(dataset, Dataset) else Dataset(dataset)
@@ -109,7 +112,7 @@ def _dataset(benchmark: str, data_preset: str, dataset: Any, progress: bool, log
         return load_dataset(benchmark, data_preset, generate_dataset(benchmark, data_preset, progress=progress))
 
 
-def _model_info(model: Any, kind: str, r: int, T: int, preset: str, dataset: Any) -> dict[str, Any]:
+def _model_info(model: LatentModel, kind: str, r: int, T: int, preset: str, dataset: Dataset) -> dict[str, Any]:
     from ..models.checkpoint import checkpoint_path, read_metadata
     from ..models.training import one_step_error
 
@@ -125,7 +128,7 @@ def _model_info(model: Any, kind: str, r: int, T: int, preset: str, dataset: Any
     return info
 
 
-def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Any) -> bool:
+def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Dataset) -> bool:
     """Whether ``load_model`` finds model ``key`` (kind, r, T) without training (:func:`locate_model`)."""
     from ..models.training import locate_model
 
@@ -148,7 +151,7 @@ def _previous(path: Path, benchmark: str, preset: str, identity: dict[str, Any])
     return doc
 
 
-def _shared_config(base: AssimilationConfig, ds: Any, device: str, noise_seed: int, filter_seed: int) -> dict:
+def _shared_config(base: AssimilationConfig, ds: Dataset, device: str, noise_seed: int, filter_seed: int) -> dict:
     """What every record of the run shares, for the results file's ``config``."""
     import torch
 
@@ -172,7 +175,7 @@ class Reproduction:
     preset: str
     device: str
     out: Path
-    dataset: Any
+    dataset: Dataset
     identity: dict[str, Any]
     base: AssimilationConfig  # the paper's P0 and Q; the calibrated experiment replaces both per run
     config: dict[str, Any]  # the results file's shared config
@@ -181,13 +184,13 @@ class Reproduction:
     train: bool
     progress: bool
     start: float = field(default_factory=time.perf_counter)
-    models: dict[tuple[str, int, int], Any] = field(default_factory=dict)
+    models: dict[tuple[str, int, int], LatentModel] = field(default_factory=dict)
     infos: list[dict[str, Any]] = field(default_factory=list)
     results: dict[tuple, AssimilationResult] = field(default_factory=dict)  # by Run.cache_key
     records: list[Record] = field(default_factory=list)
     doc: ResultsDocument | None = None
 
-    def model(self, key: tuple[str, int, int]) -> Any:
+    def model(self, key: tuple[str, int, int]) -> LatentModel:
         """The model (kind, r, T), loaded once (trained here when missing, with its own progress bar)."""
         if key not in self.models:
             from ..models import load_model
@@ -237,7 +240,7 @@ class Reproduction:
         self.doc = doc
 
 
-def _open(benchmark: str, preset: str, device: str, out: Path, ds: Any, train: bool, skip_done: bool,
+def _open(benchmark: str, preset: str, device: str, out: Path, ds: Dataset, train: bool, skip_done: bool,
           noise_seed: int, filter_seed: int, progress: bool) -> Reproduction:
     """The state of a reproduce run: the dataset's identity, the results already in ``out``, the shared config."""
     from ..models.checkpoint import dataset_identity
@@ -275,7 +278,7 @@ def reproduce(
     only: Iterable[str] | None = None,
     models: Iterable[str] | None = None,
     data_preset: str = "paper",
-    dataset: Any = None,
+    dataset: Dataset | str | Path | None = None,
     train: bool = True,
     skip_done: bool = False,
     noise_seed: int = 0,
