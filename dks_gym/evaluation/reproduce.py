@@ -172,7 +172,7 @@ def _dataset(benchmark: str, data_preset: str, dataset: Any, progress: bool, log
 
 def _model_info(model: Any, kind: str, r: int, T: int, preset: str, dataset: Any, device: str) -> dict[str, Any]:
     from ..models.checkpoint import checkpoint_path, read_metadata
-    from ..models.training import one_step_error
+    from ..models.diagnostics import one_step_error
 
     path = getattr(model, "checkpoint_path", None) or checkpoint_path(
         dataset.benchmark.name, kind, preset, r, T, data_preset=dataset.preset or "custom")
@@ -194,7 +194,7 @@ def _key(experiment: str, run: Run) -> tuple:
 
 def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Any) -> bool:
     """Whether ``load_model`` finds model ``key`` (kind, r, T) without training (:func:`locate_model`)."""
-    from ..models.training import locate_model
+    from ..models.lookup import locate_model
 
     kind, r, T = key
     return locate_model(benchmark, kind, r, preset, T, dataset=dataset).found is not None
