@@ -49,7 +49,7 @@ from dks_gym.filters.ekf import ekf_forecast, ekf_update
 from dks_gym.filters.enkf import enkf_forecast, enkf_update
 from dks_gym.filters.jacobians import forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
 from dks_gym.models import build_model
-from dks_gym.models.training import training_loss
+from dks_gym.models.loss import training_loss
 from dks_gym.wrappers import LatentFilter, LatentFilterVectorEnv
 
 

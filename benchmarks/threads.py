@@ -37,7 +37,7 @@ import torch
 from dks_gym.assimilation import AssimilationConfig, run_assimilation
 from dks_gym.dataset import generate_dataset, load_dataset
 from dks_gym.models import build_model
-from dks_gym.models.training import WindowSampler, training_loss, training_schedule
+from dks_gym.models import WindowSampler, training_loss, training_schedule
 from dks_gym.names import MODEL_KINDS
 
 

@@ -21,7 +21,7 @@ register_envs()
 _LAZY = {
     "LatentFilter": "dks_gym.wrappers.latent_filter",
     "FilterConfig": "dks_gym.assimilation.config",
-    "load_model": "dks_gym.models.training",
+    "load_model": "dks_gym.models.lookup",
     "ModelSpec": "dks_gym.models.spec",
 }
 

@@ -258,7 +258,7 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
     from .dataset import DatasetMissing, SchemaError, load_dataset
     from .home import DataHomeError
     from .models.shipped import export_model
-    from .models.training import one_step_error, train_model
+    from .models import one_step_error, train_model, training_schedule
 
     kinds = list(MODEL_KINDS) if model == "all" else [model]
     try:
@@ -268,7 +268,8 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
     for kind in kinds:
         try:
             result = train_model(
-                benchmark.lower(), kind, r, preset, T, dataset=ds, steps=steps, batch_size=batch_size, lr=lr,
+                benchmark.lower(), kind, r, preset, T, dataset=ds,
+                schedule=training_schedule(benchmark.lower(), preset, steps=steps, batch_size=batch_size, lr=lr),
                 seed=seed, device=device, resume=resume, checkpoint_every=checkpoint_every, progress=progress,
             )
         except (ValueError, DataHomeError) as exc:
@@ -322,7 +323,7 @@ def calibrate(benchmark: str, model: str, preset: str, r: int, T: int, data_pres
     from .assimilation import calibrate_process_noise
     from .dataset import DatasetMissing, SchemaError, load_dataset
     from .models.checkpoint import CheckpointMissing, checkpoint_path
-    from .models.training import load_model
+    from .models.lookup import load_model
 
     benchmark = benchmark.lower()
     try:

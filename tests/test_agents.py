@@ -30,7 +30,7 @@ from dks_gym_agents.scoring import LinearizedTrajectories, covariance_traces, ru
 from dks_gym.dataset import Dataset, write_dataset
 from dks_gym.assimilation import AssimilationConfig
 from dks_gym.models import build_model
-from dks_gym.models.training import calibrate
+from dks_gym.models.calibration import calibrate
 from dks_gym.wrappers import LatentFilter
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -251,7 +251,7 @@ def test_generate_write_and_train_leave_no_lock_file_beside_their_outputs(tmp_pa
                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     from dks_gym.benchmarks import get_benchmark
     from dks_gym.dataset import generate_dataset
-    from dks_gym.models.training import train_model
+    from dks_gym.models import train_model, training_schedule
 
     home = tmp_path / "home"
     monkeypatch.setenv("DKS_GYM_HOME", str(home))
@@ -261,8 +261,9 @@ def test_generate_write_and_train_leave_no_lock_file_beside_their_outputs(tmp_pa
     out.mkdir()
     write_dataset(synthetic_data("burgers"), "burgers", out / "written.h5")
     generated = generate_dataset("burgers", "small", progress=False)
-    train_model("burgers", "koopman", 4, dataset=Dataset(generated), steps=2, batch_size=2,
-                path=out / "m.safetensors", progress=False)
+    train_model("burgers", "koopman", 4, dataset=Dataset(generated),
+                schedule=training_schedule("burgers", "lite", steps=2, batch_size=2), path=out / "m.safetensors",
+                progress=False)
     assert sorted(p.name for p in out.iterdir()) == ["m.loss.png", "m.safetensors", "written.h5"]  # and its figure
     assert sorted(p.name for p in (home / "data").iterdir()) == ["burgers-small.h5"]
     kinds = sorted(p.name.rsplit(".", 2)[1] for p in (home / ".locks").iterdir())

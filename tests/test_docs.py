@@ -5,7 +5,7 @@
   unless its first line is ``# doc-test: import-only (why)``: a fragment, or a block that needs CFD data, a
   GPU or long training.
 * Every block, run or not, is compiled, each ``import X`` / ``from X import a, b`` in it is imported and every
-  imported name must exist, and attribute chains on an imported module (``dks_gym.models.training.calibrate``,
+  imported name must exist, and attribute chains on an imported module (``dks_gym.models.calibration.calibrate``,
   ``torch.linalg.matrix_exp``) must resolve as far as they run through modules.
 
 A failure names the file and the line of the block's opening fence.

@@ -29,7 +29,7 @@ from dks_gym.evaluation.results import (
     save_results,
     validate,
 )
-from dks_gym.models.training import train_model
+from dks_gym.models import train_model, training_schedule
 from dks_gym.wrappers import LatentFilter
 
 # Short trainings: enough for the models to leave their initialization, small enough for a test (~25 s).
@@ -64,8 +64,8 @@ def models(dataset: Dataset) -> dict:
     checked on models that left their initialization, trained once for the whole module."""
     out = {}
     for kind in ("koopman", "mlp", "xlstm", "pdmd"):
-        out[kind] = train_model("burgers", kind, 32, "lite", 1, dataset=dataset, steps=TRAIN_STEPS.get(kind),
-                                progress=False).model.eval()
+        out[kind] = train_model("burgers", kind, 32, "lite", 1, dataset=dataset, progress=False,
+                                schedule=training_schedule("burgers", "lite", steps=TRAIN_STEPS.get(kind))).model.eval()
     return out
 
 
@@ -433,7 +433,7 @@ def test_records_hold_per_channel_errors_and_the_filter_spread(make_synthetic) -
     step; and the reproduce tables' per-channel section showing them."""
     from dks_gym.evaluation.reproduce import tables_markdown
     from dks_gym.models import build_model
-    from dks_gym.models.training import calibrate
+    from dks_gym.models.calibration import calibrate
 
     ds = Dataset(make_synthetic("dambreak", n_t=5))
     model = build_model("dambreak", "koopman", r=8, preset="lite", dataset=ds, seed=0)

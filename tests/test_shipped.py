@@ -207,7 +207,7 @@ def test_calibrate_command_tunes_a_checkpoint_and_export_refuses_an_untuned_one(
 
     from dks_gym.assimilation import tuning
     from dks_gym.cli import main
-    from dks_gym.models import train_model
+    from dks_gym.models import train_model, training_schedule
     from dks_gym.models.checkpoint import calibration_names
 
     home = tmp_path / "home"
@@ -216,7 +216,8 @@ def test_calibrate_command_tunes_a_checkpoint_and_export_refuses_an_untuned_one(
     monkeypatch.setenv("DKS_GYM_HOME", str(home))
     monkeypatch.setattr(tuning, "BISECTIONS", 1)
     ds = Dataset(home / "data" / burgers_small.name)
-    path = train_model("burgers", "koopman", 32, "lite", 1, dataset=ds, steps=20, progress=False).path
+    path = train_model("burgers", "koopman", 32, "lite", 1, dataset=ds, progress=False,
+                       schedule=training_schedule("burgers", "lite", steps=20)).path
     assert "Q_scale" not in calibration_names(path)
     with pytest.raises(ValueError, match="dks-gym calibrate burgers --model koopman"):
         export_model(path, ds, out_dir=tmp_path / "out")

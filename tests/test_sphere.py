@@ -226,12 +226,13 @@ def test_reproduce_runs_the_sphere_small_preset_end_to_end(sphere_small: Path, t
     from dks_gym.dataset import Dataset
     from dks_gym.evaluation.commands import reproduce_command
     from dks_gym.evaluation.results import load_results
-    from dks_gym.models.training import train_model
+    from dks_gym.models import train_model, training_schedule
 
     ds = Dataset(sphere_small)
     neural = ("koopman", "mlp")  # the explicit and the autodiff Jacobian; xLSTM's adds time, not a path
     for kind in neural:
-        train_model("sphere", kind, 32, "lite", 1, dataset=ds, steps=2, progress=False)
+        train_model("sphere", kind, 32, "lite", 1, dataset=ds, schedule=training_schedule("sphere", "lite", steps=2),
+                    progress=False)
     out = tmp_path / "sphere"
     result = CliRunner().invoke(reproduce_command, ["sphere", "--preset", "lite", "--data-preset", "small",
                                                     "--only", "operator_norm", "--out", str(out), "--no-train",

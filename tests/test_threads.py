@@ -63,7 +63,7 @@ def test_filter_and_training_run_on_the_chosen_threads(clean_threads, burgers_sm
     from dks_gym import FilterConfig, LatentFilter
     from dks_gym.dataset import load_dataset
     from dks_gym.models import build_model
-    from dks_gym.models.training import train_model
+    from dks_gym.models import train_model, training_schedule
 
     ds = load_dataset("burgers", "small", burgers_small)
     model = build_model("burgers", "mlp", 4, "lite", dataset=ds)
@@ -83,6 +83,7 @@ def test_filter_and_training_run_on_the_chosen_threads(clean_threads, burgers_sm
     set_threads(None)
 
     counts: list[int] = []
-    train_model("burgers", "mlp", r=4, dataset=ds, steps=2, batch_size=2, path=tmp_path / "m.safetensors",
-                progress=False, on_step=lambda step, terms: counts.append(torch.get_num_threads()))
+    train_model("burgers", "mlp", r=4, dataset=ds, schedule=training_schedule("burgers", "lite", steps=2, batch_size=2),
+                path=tmp_path / "m.safetensors", progress=False,
+                on_step=lambda step, terms: counts.append(torch.get_num_threads()))
     assert counts == [1, 1] and torch.get_num_threads() == 2

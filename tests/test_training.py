@@ -21,6 +21,7 @@ from dks_gym.models import (
     read_metadata,
     train_model,
     training_loss,
+    training_schedule,
 )
 
 R = 8
@@ -40,8 +41,8 @@ def trained(ds, tmp_path_factory):
     The module's one long setup (about 20 s on one core): every test here reads these four checkpoints."""
     out = tmp_path_factory.mktemp("checkpoints")
     return {
-        kind: train_model("burgers", kind, R, "lite", dataset=ds, steps=STEPS, batch_size=32, progress=False,
-                          path=out / f"{kind}.safetensors")
+        kind: train_model("burgers", kind, R, "lite", dataset=ds, progress=False, path=out / f"{kind}.safetensors",
+                          schedule=training_schedule("burgers", "lite", steps=STEPS, batch_size=32))
         for kind in (*NEURAL, "pdmd")
     }
 
@@ -132,8 +133,8 @@ def test_pdmd_trains_through_the_same_entry_point(ds, trained):
 
 # Multi-step --------------------------------------------------------------------------------------------
 def test_multistep_training_runs_and_is_recorded(ds, tmp_path):
-    result = train_model("burgers", "mlp", R, "lite", T=2, dataset=ds, steps=4, batch_size=4, progress=False,
-                         path=tmp_path / "t2.safetensors")
+    result = train_model("burgers", "mlp", R, "lite", T=2, dataset=ds, progress=False, path=tmp_path / "t2.safetensors",
+                         schedule=training_schedule("burgers", "lite", steps=4, batch_size=4))
     assert result.losses.shape == (4, 4) and np.isfinite(result.losses).all()
     meta = read_metadata(result.path)
     assert (meta["T"], meta["steps_done"], meta["complete"]) == (2, 4, True)
@@ -143,7 +144,8 @@ def test_multistep_training_runs_and_is_recorded(ds, tmp_path):
 
 # Resume ------------------------------------------------------------------------------------------------
 def test_interrupted_training_resumes_to_bit_identical_weights(ds, tmp_path):
-    kwargs = {"dataset": ds, "steps": 6, "batch_size": 4, "checkpoint_every": 2, "progress": False}
+    kwargs = {"dataset": ds, "schedule": training_schedule("burgers", "lite", steps=6, batch_size=4),
+              "checkpoint_every": 2, "progress": False}
     full = train_model("burgers", "koopman", R, "lite", path=tmp_path / "full.safetensors", **kwargs)
 
     def interrupt(step, terms):
@@ -252,7 +254,7 @@ def test_training_on_a_damaged_file_names_the_file(make_synthetic, in_memory: bo
 
 # Schedule, validation, early stopping, calibration ---------------------------------------------------------
 def test_learning_rate_warms_up_then_decays_along_a_cosine():
-    from dks_gym.models.training import TrainingSchedule
+    from dks_gym.models.schedule import TrainingSchedule
 
     s = TrainingSchedule(1000, 32, 1e-3, warmup=0.1, final_lr=1e-5)
     assert s.warmup_steps == 100
@@ -266,7 +268,7 @@ def test_learning_rate_warms_up_then_decays_along_a_cosine():
 
 def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_path):
     from dks_gym.models.checkpoint import loss_curve_path
-    from dks_gym.models.training import ValidationMonitor, validation_trajectories
+    from dks_gym.models.validation import ValidationMonitor, validation_trajectories
 
     held_out = validation_trajectories(ds.n_trajectories("train"), 0.1, seed=3)
     assert held_out == validation_trajectories(6, 0.1, seed=3) and len(held_out) == 1
@@ -277,8 +279,9 @@ def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_
     assert not seen & set(held_out)
 
     # A learning rate high enough that the last weights are not the best ones.
-    result = train_model("burgers", "mlp", R, "lite", dataset=ds, steps=60, batch_size=8, lr=0.03, seed=3,
-                         progress=False, path=tmp_path / "m.safetensors")
+    result = train_model("burgers", "mlp", R, "lite", dataset=ds, seed=3, progress=False,
+                         path=tmp_path / "m.safetensors",
+                         schedule=training_schedule("burgers", "lite", steps=60, batch_size=8, lr=0.03))
     meta = read_metadata(result.path)
     assert meta["validation_trajectories"] == held_out and meta["calibrated_on"] == "validation"
     assert loss_curve_path(result.path).stat().st_size > 10_000  # the figure beside the checkpoint
@@ -296,11 +299,11 @@ def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_
 
 
 def test_early_stopping_ends_a_run_that_stopped_improving(ds, tmp_path, monkeypatch):
-    from dks_gym.models import training
+    from dks_gym.models import schedule
 
     # A learning rate too small to move the loss by 1 % between validations: patience 2 ends it at the third.
-    frozen = training.TrainingSchedule(400, 8, 1e-9, validation_fraction=0.1, validations=40, patience=2)
-    monkeypatch.setitem(training.TRAINING_SCHEDULES["lite"], "burgers", frozen)
+    frozen = schedule.TrainingSchedule(400, 8, 1e-9, validation_fraction=0.1, validations=40, patience=2)
+    monkeypatch.setitem(schedule.TRAINING_SCHEDULES["lite"], "burgers", frozen)
     result = train_model("burgers", "koopman", R, "lite", dataset=ds, progress=False, path=tmp_path / "k.safetensors")
     meta = read_metadata(result.path)
     assert meta["stopped_early"] and meta["complete"] and result.steps_done == 30
@@ -313,7 +316,7 @@ def test_calibrated_q_is_the_true_process_noise_of_a_linear_gaussian_model():
     the calibrated Q is the sample covariance of w, within its sampling error."""
     from dks_gym.models.latent_model import LatentModel
     from dks_gym.models.presets import benchmark_shape
-    from dks_gym.models.training import calibrate
+    from dks_gym.models.calibration import calibrate
 
     r, n_traj, n_t = 4, 40, 101
     rng = np.random.default_rng(0)

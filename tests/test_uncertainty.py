@@ -41,7 +41,7 @@ from dks_gym.evaluation.figures import uncertainty_figure
 from dks_gym.evaluation.results import make_record, new_results, validate_record
 from dks_gym.models import LatentModel, benchmark_shape, build_model
 from dks_gym.models.checkpoint import read_checkpoint, save_checkpoint, update_calibration
-from dks_gym.models.training import calibrate
+from dks_gym.models.calibration import calibrate
 from dks_gym.wrappers import LatentFilter, Uncertainty
 from dks_gym.wrappers.vector import LatentFilterVectorEnv
 

@@ -13,7 +13,7 @@ from gymnasium.utils.env_checker import check_env
 import dks_gym  # noqa: F401
 from dks_gym.dataset import Dataset
 from dks_gym.models import build_model
-from dks_gym.models.training import calibrate
+from dks_gym.models.calibration import calibrate
 from dks_gym.assimilation import FilterConfig
 from dks_gym.wrappers import LatentFilter
 from dks_gym.wrappers.vector import LatentFilterVectorEnv, SB3VecEnv
@@ -162,12 +162,12 @@ def test_koopman_ekf_beats_its_forward_run_on_burgers(burgers_small: Path, tmp_p
     About 20 s on one core, most of it the 300 training steps: the effect needs a model that is trained
     but not converged (the shipped, converged model's forward run leaves the paper-Q EKF nothing to gain).
     """
-    from dks_gym.models import train_model
+    from dks_gym.models import train_model, training_schedule
 
     ds = Dataset(burgers_small)
     path = tmp_path_factory.mktemp("ckpt") / "koopman.safetensors"
-    model = train_model("burgers", "koopman", r=32, preset="lite", dataset=ds, steps=300, progress=False,
-                        path=path).model
+    model = train_model("burgers", "koopman", r=32, preset="lite", dataset=ds, progress=False, path=path,
+                        schedule=training_schedule("burgers", "lite", steps=300)).model
     finals = {}
     for filt in ("forward", "ekf"):
         env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, filter=filt,
@@ -475,11 +475,11 @@ def test_filter_burgers_example_runs_from_an_empty_data_home(tmp_path: Path, mon
 
     from dks_gym.assimilation import tuning
     from dks_gym.benchmarks import burgers
-    from dks_gym.models import training
+    from dks_gym.models import schedule
 
     monkeypatch.setenv("DKS_GYM_HOME", str(tmp_path / "home"))
     monkeypatch.setitem(burgers.PRESET_COUNTS, "small", (4, 1))  # 1 test trajectory: 12 runs of 99 steps
-    monkeypatch.setitem(training.TRAINING_SCHEDULES["lite"], "burgers", training.TrainingSchedule(20, 8, 1e-3))
+    monkeypatch.setitem(schedule.TRAINING_SCHEDULES["lite"], "burgers", schedule.TrainingSchedule(20, 8, 1e-3))
     monkeypatch.setattr(tuning, "BISECTIONS", 1)  # train_if_missing=True tunes each model too: 2 runs, not 7
     path = Path(__file__).parents[1] / "examples" / "filter_burgers.py"
     spec = importlib.util.spec_from_file_location("filter_burgers_example", path)

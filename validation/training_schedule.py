@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from dks_gym.dataset import load_dataset
-from dks_gym.models.training import one_step_error, train_model
+from dks_gym.models import one_step_error, train_model, training_schedule
 
 
 def write_json(path: Path, payload: dict) -> None:
@@ -79,8 +79,9 @@ def main() -> None:
                 continue
             start = time.perf_counter()
             result = train_model(
-                args.benchmark, model, r=args.r, preset=args.preset, dataset=ds, steps=steps,
-                batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device, path=path,
+                args.benchmark, model, r=args.r, preset=args.preset, dataset=ds, seed=args.seed, device=args.device,
+                path=path, schedule=training_schedule(args.benchmark, args.preset, steps=steps,
+                                                      batch_size=args.batch_size, lr=args.lr),
             )  # fmt: skip
             wall = time.perf_counter() - start
             row = {"model": model, "steps": steps, "new_steps": result.new_steps, "stage_wall_s": wall,

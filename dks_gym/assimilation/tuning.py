@@ -1,6 +1,6 @@
 """The scale of the calibrated process noise: tuned once per model, at the end of training or on request.
 
-The calibrated ``Q`` (:func:`dks_gym.models.training.calibrate`) is the covariance of a model's latent one-step
+The calibrated ``Q`` (:func:`dks_gym.models.calibration.calibrate`) is the covariance of a model's latent one-step
 residuals. A filter that assumes it is too sure of itself when the model's errors are correlated in time
 (a systematic drift, not white noise): its latent covariance grows slower than its error, and the decoded
 ``estimate_std`` is too small. On the Burgers lite models (docs/filters.md) the mean NEES per cell over the
@@ -81,7 +81,7 @@ def tune_process_noise(model: FilterableModel, dataset: Dataset, *, target: floa
     trajectories = _trajectories(model)
     if not trajectories or "Q" not in model.calibration:
         raise ValueError("the model has no calibrated Q and held-out trajectories (model.calibration['Q'], "
-                         "['trajectories']); calibrate it first (dks_gym.models.training.calibrate)")
+                         "['trajectories']); calibrate it first (dks_gym.models.calibrate)")
     lo, hi = (math.log(s) for s in SCALE_RANGE)
     evaluations: list[tuple[float, float]] = []
     bar = tqdm(total=BISECTIONS + 1, desc=f"tuning Q for {model.kind}", unit="run", disable=not progress,

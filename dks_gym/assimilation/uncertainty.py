@@ -29,7 +29,7 @@ import torch
 from ..dataset import Dataset
 from ..filters.covariance import psd_sqrt
 from ..models import FilterableModel, LatentModel
-from ..models.training import calibrate
+from ..models.calibration import calibrate
 
 #: The two-sided 95 % quantile of the standard normal, Phi^-1(0.975).
 Z95 = 1.959963984540054

@@ -114,7 +114,7 @@ def _dataset(benchmark: str, data_preset: str, dataset: Dataset | str | Path | N
 
 def _model_info(model: LatentModel, kind: str, r: int, T: int, preset: str, dataset: Dataset) -> dict[str, Any]:
     from ..models.checkpoint import checkpoint_path, read_metadata
-    from ..models.training import one_step_error
+    from ..models.diagnostics import one_step_error
 
     path = getattr(model, "checkpoint_path", None) or checkpoint_path(
         dataset.benchmark.name, kind, preset, r, T, data_preset=dataset.preset or "custom")
@@ -130,7 +130,7 @@ def _model_info(model: LatentModel, kind: str, r: int, T: int, preset: str, data
 
 def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Dataset) -> bool:
     """Whether ``load_model`` finds model ``key`` (kind, r, T) without training (:func:`locate_model`)."""
-    from ..models.training import locate_model
+    from ..models.lookup import locate_model
 
     kind, r, T = key
     return locate_model(benchmark, kind, r, preset, T, dataset=dataset).found is not None

@@ -3,8 +3,10 @@
 ``build_model(benchmark, model, r=32, preset="paper" | "lite")`` returns a :class:`LatentModel` with the
 uniform interface ``encode``/``decode`` (physical units), ``forecast``/``forecast_jacobian`` and
 ``observe``, batched over a leading dimension. :func:`train_model` trains one (Eqs. 10-11) into a
-checkpoint and :func:`load_model` loads a trained one (or trains it when asked); a :class:`ModelSpec` names
-one for a wrapper. :class:`FilterableModel` is the Protocol of what the filters need of any model.
+checkpoint with a :class:`TrainingSchedule` (:func:`training_schedule`: a preset's, or one with other steps,
+batch size or learning rate) and :func:`load_model` loads a trained one (or trains it when asked); a
+:class:`ModelSpec` names one for a wrapper. :class:`FilterableModel` is the Protocol of what the filters need
+of any model.
 """
 
 from __future__ import annotations
@@ -37,19 +39,14 @@ from .presets import (
     backbone_spec,
     benchmark_shape,
 )
-from .training import (
-    TRAINING_SCHEDULES,
-    TrainingResult,
-    TrainingSchedule,
-    WindowSampler,
-    load_model,
-    locate_model,
-    one_step_error,
-    train_model,
-    training_loss,
-    training_schedule,
-)
+from .calibration import calibrate
+from .diagnostics import one_step_error
+from .lookup import load_model, locate_model
+from .loss import training_loss
+from .schedule import TRAINING_SCHEDULES, TrainingSchedule, training_schedule
 from .spec import ModelSpec
+from .training import TrainingResult, train_model
+from .windows import WindowSampler
 from .xlstm import XLSTMTransition, xlstm_block_stack
 
 __all__ = [
@@ -83,6 +80,7 @@ __all__ = [
     "backbone_spec",
     "benchmark_shape",
     "build_model",
+    "calibrate",
     "checkpoint_path",
     "count_parameters",
     "dataset_identity",

@@ -63,7 +63,7 @@ class LatentModel(nn.Module):
         stats_std: ArrayLike | None = None,
     ) -> None:
         super().__init__()
-        # Measured on held-out trajectories after training (models.training.calibrate): "Q", the latent
+        # Measured on held-out trajectories after training (models.calibration.calibrate): "Q", the latent
         # one-step residual covariance (r, r), and "reconstruction_variance", per cell (C, *grid).
         self.calibration: dict[str, torch.Tensor] = {}
         if int(r) != r or r < 1:

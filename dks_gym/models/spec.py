@@ -15,7 +15,7 @@ import torch
 
 from .latent_model import LatentModel
 from .presets import MODEL_KINDS, MODEL_PRESETS
-from .training import load_model
+from .lookup import load_model
 
 
 @dataclass(frozen=True)
