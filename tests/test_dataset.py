@@ -103,11 +103,13 @@ def test_file_written_elsewhere_loads_unchanged(tmp_path: Path) -> None:
         (lambda f: f.__delitem__("time"), "time"),
         (lambda f: f.__delitem__("coords/x"), "coords/x"),
         (lambda f: f.__delitem__("stats/std"), "stats/std"),
-        (lambda f: (f.__delitem__("train/fields"), f.create_dataset("train/fields", data=np.zeros((2, 3, 1, 512), "f4"))), "train/fields"),
+        (lambda f: (f.__delitem__("train/fields"),
+                    f.create_dataset("train/fields", data=np.zeros((2, 3, 1, 512), "f4"))), "train/fields"),
         (lambda f: (f.__delitem__("test/params"), f.create_dataset("test/params", data=np.zeros(5))), "test/params"),
         (lambda f: f.attrs.__setitem__("observed_channel", "p"), "observed_channel"),
         (lambda f: f.attrs.__setitem__("scored_channels", ["u", "w"]), "scored_channels"),
-        (lambda f: (f.__delitem__("train/fields"), f.create_dataset("train/fields", data=np.zeros((2, 4, 1, 1024), "i4"))), "train/fields"),
+        (lambda f: (f.__delitem__("train/fields"),
+                    f.create_dataset("train/fields", data=np.zeros((2, 4, 1, 1024), "i4"))), "train/fields"),
     ],
 )
 def test_malformed_files_are_rejected_naming_the_item(tmp_path: Path, mutate, item: str) -> None:

@@ -160,10 +160,18 @@ def test_ekf_equals_filterpy_extended_kalman_filter_on_nonlinear_map():
     sys = linear_system(seed=1)
     A, H = sys["A"], sys["H"]
     r, m = A.shape[0], H.shape[0]
-    f = lambda x: A @ x + 0.1 * np.sin(x)
-    F = lambda x: A + 0.1 * np.diag(np.cos(x))
-    h = lambda x: np.tanh(H @ x)
-    J = lambda x: (1 - np.tanh(H @ x) ** 2)[:, None] * H
+
+    def f(x):
+        return A @ x + 0.1 * np.sin(x)
+
+    def F(x):
+        return A + 0.1 * np.diag(np.cos(x))
+
+    def h(x):
+        return np.tanh(H @ x)
+
+    def J(x):
+        return (1 - np.tanh(H @ x) ** 2)[:, None] * H
 
     ref = ExtendedKalmanFilter(dim_x=r, dim_z=m)
     ref.x, ref.P, ref.Q, ref.R = sys["z0"].copy(), sys["P0"].copy(), sys["Q"], sys["R"]

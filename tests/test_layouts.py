@@ -99,7 +99,7 @@ def _lattice_count(lo: float, h: float, a: float, b: float) -> int:
 def test_cylinder_cell_counts():
     bench = get_benchmark("cylinder")
     ct = bench.cell_type()
-    (x, y), (dx, dy) = bench.coords(), spacing(bench)
+    (x, _), (dx, dy) = bench.coords(), spacing(bench)
     nx, ny = bench.grid
     # Body: the circle's lattice points counted column by column, |y| < sqrt(R^2 - x^2).
     half_chords = [math.sqrt(1 - xi**2) for xi in x if abs(xi) < 1]
@@ -121,7 +121,7 @@ def test_cylinder_cell_counts():
 def test_sphere_cell_counts():
     bench = get_benchmark("sphere")
     ct = bench.cell_type()
-    (x, y, z), (dx, dy, dz) = bench.coords(), spacing(bench)
+    (x, _, z), (dx, dy, dz) = bench.coords(), spacing(bench)
     nx, ny, nz = bench.grid
     expected_body = 0
     for xi in x:

@@ -149,7 +149,8 @@ def test_sphere_drag_at_low_reynolds_number() -> None:
     boundary layers speed up the core flow at this low Re)."""
     bench = get_benchmark("sphere")
     out = sphere_case.simulate(
-        [20.0], {"resolution": 3, "u_lattice": 0.1, "spin_up": 12.0, "n_frames": 3, "perturbation": 0.0, "walls": False},
+        [20.0],
+        {"resolution": 3, "u_lattice": 0.1, "spin_up": 12.0, "n_frames": 3, "perturbation": 0.0, "walls": False},
         coords=bench.coords(), cell_type=bench.cell_type(), fields=False,
     )
     cd = out["drag"][0, -1]

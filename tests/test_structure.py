@@ -43,7 +43,8 @@ class Offender:
 
 def module_paths(repo: Path) -> list[Path]:
     """Every ``.py`` file of the checked packages under ``repo``, sorted."""
-    return [path for package in PACKAGES if (repo / package).is_dir() for path in sorted((repo / package).rglob("*.py"))]
+    return [path for package in PACKAGES if (repo / package).is_dir()
+            for path in sorted((repo / package).rglob("*.py"))]
 
 
 def declared_whole(text: str) -> bool:

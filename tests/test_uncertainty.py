@@ -297,7 +297,8 @@ def test_reconstruction_variance_adds_to_the_filter_variance(models: dict, burge
     np.testing.assert_allclose(recon, np.concatenate(errs).mean(0)[None], rtol=1e-3, atol=1e-9)
     # Added to the filter's variance: given explicitly, or by default the model's calibrated one.
     calibrated = copy.deepcopy(model)
-    calibrated.calibration = dict(model.calibration, reconstruction_variance=torch.as_tensor(recon, dtype=torch.float32))
+    calibrated.calibration = dict(model.calibration,
+                                  reconstruction_variance=torch.as_tensor(recon, dtype=torch.float32))
     stds = []
     for m, rv in ((model, 0.0), (model, recon), (calibrated, None)):
         env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=m, filter="ekf",

@@ -70,7 +70,8 @@ def test_reward_is_minus_the_mse_of_the_estimate(models: dict) -> None:
 
 
 def test_belief_observation_is_mean_and_log_variance(models: dict) -> None:
-    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], filter="ekf", config=FilterConfig(P0=0.5))
+    env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["koopman"], filter="ekf",
+                       config=FilterConfig(P0=0.5))
     obs, _ = env.reset(seed=0)
     np.testing.assert_allclose(obs[8:], np.log(0.5), rtol=1e-6)  # P0 = 0.5 I before any step
     obs, *_ = env.step(None)

@@ -140,7 +140,8 @@ def main() -> None:
                 "wall_s": float(r["wall_s"]),
             })  # fmt: skip
     print(
-        "\n| Re | refine | cells | St | St Roshko | St / Roshko - 1 | mean Cd | Cl amplitude | change St | change Cd | run time |"
+        "\n| Re | refine | cells | St | St Roshko | St / Roshko - 1 | mean Cd | Cl amplitude | change St | change Cd "
+        "| run time |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     verdict = True
@@ -167,7 +168,8 @@ def main() -> None:
             per = round(10.0 / base["force_dt"])
             windows = [0.5 * float(np.ptp(ls[i : i + per])) for i in range(0, len(ls) - per + 1, per)]
             rec = 0.5 * float(np.ptp(r["lift"]))
-            spin.append({"Re": re, "spin_up_windows": windows, "recording": rec, "t_start": float(r.get("t_start", np.nan)),
+            spin.append({"Re": re, "spin_up_windows": windows, "recording": rec,
+                         "t_start": float(r.get("t_start", np.nan)),
                          "St": cc.strouhal(r["lift"], base["force_dt"])})  # fmt: skip
             print(
                 f"  Re {re:g}: spin-up {spin[-1]['t_start']:g} R/U, last windows "

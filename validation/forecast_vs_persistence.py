@@ -69,7 +69,8 @@ def main() -> None:
                    train_time_s=meta.get("train_time_s"), stopped_early=meta.get("stopped_early"),
                    best_validation_loss=meta.get("best_validation_loss"))
         rows[kind] = err
-        print(f"{kind:8s} {args.steps}-step forecast MSE {err['model_mse']:.3e}  persistence {err['persistence_mse']:.3e}"
+        print(f"{kind:8s} {args.steps}-step forecast MSE {err['model_mse']:.3e}  "
+              f"persistence {err['persistence_mse']:.3e}"
               f"  ratio {err['ratio']:.3f}  ({err['steps_trained']} steps, {err['train_time_s'] or 0:.0f} s)")
     doc = {"benchmark": args.benchmark, "preset": args.preset, "forecast_steps": args.steps, "stride": args.stride,
            "dataset": Path(str(ds.path)).name, "command": "python validation/forecast_vs_persistence.py "

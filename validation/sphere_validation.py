@@ -160,7 +160,8 @@ def plot(results: Path, out: Path) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
     rs, cds = [], []
     for r in (3, 4, 5, 8):
-        for f in (results / f"sphere_validation_nowalls_re100_r{r}.json", results / f"sphere_validation_nowalls_r{r}.json"):
+        for f in (results / f"sphere_validation_nowalls_re100_r{r}.json",
+                  results / f"sphere_validation_nowalls_r{r}.json"):
             if f.exists():  # rows[0] is Re 100 in both
                 rs.append(r)
                 cds.append(json.loads(f.read_text())["rows"][0]["Cd"])
@@ -208,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cylinder", type=int, nargs="*", default=None,
                     help="instead: the 2D solver on the cylinder benchmark's case at these resolutions (nodes per R), "
                          "at the first --re, spin-up --time, recording --average R/U (default 50)")
-    ap.add_argument("--plot", type=Path, default=None, help="instead: draw the figure from validation/results into PATH")
+    ap.add_argument("--plot", type=Path, default=None,
+                    help="instead: draw the figure from validation/results into PATH")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.plot is not None:

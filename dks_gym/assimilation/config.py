@@ -45,7 +45,8 @@ class FilterConfig:
     :func:`~dks_gym.assimilation.ensure_process_noise_scale`; 1 until tuned), P0 the spread
     of the encoded first frames around the approximate initial condition, or Q for the exact one). The
     default is "calibrated": with the paper's values a converged model's EKF is worse than its forward run
-    (docs/filters.md). R = sigma^2 I comes from the env. EnKF: ``n_members``, ``inflation`` (multiplicative, 1 = none), ``localization`` (a hook
+    (docs/filters.md). R = sigma^2 I comes from the env. EnKF: ``n_members``, ``inflation`` (multiplicative,
+    1 = none), ``localization`` (a hook
     ``(C_zy, C_yy) -> (C_zy, C_yy)``, e.g. :func:`~dks_gym.filters.schur_localization`).
     ``on_divergence``: "raise" stops at a non-finite estimate, "reset" restarts the diverged elements.
     ``seed``: seeds the EnKF's draws when the caller gives none.
@@ -225,7 +226,8 @@ class AssimilationConfig:
         object.__setattr__(self, "faults", SensorFaults.from_any(self.faults))
 
     def replace(self, **changes: Any) -> "AssimilationConfig":
-        """A copy with fields of this config or of its :class:`FilterConfig` changed (``kind="enkf"``, ``noise_level=0.1``)."""
+        """A copy with fields of this config or of its :class:`FilterConfig` changed (``kind="enkf"``,
+        ``noise_level=0.1``)."""
         own = {f.name for f in dataclasses.fields(self)} - {"filter"}
         filter_fields = {f.name for f in dataclasses.fields(FilterConfig)}
         unknown = set(changes) - own - filter_fields - {"filter"}

@@ -84,11 +84,13 @@ def validate(f: h5py.File) -> Benchmark:
     bench = BENCHMARKS[name]
     if int(f.attrs["schema_version"]) != SCHEMA_VERSION:
         raise SchemaError(
-            f"{where}: schema_version {f.attrs['schema_version']} is not supported (this dks-gym reads {SCHEMA_VERSION})"
+            f"{where}: schema_version {f.attrs['schema_version']} is not supported "
+            f"(this dks-gym reads {SCHEMA_VERSION})"
         )
     channels = as_str_list(f.attrs["channels"], "channels")
     if channels != list(bench.channels):
-        raise SchemaError(f"{where}: attribute 'channels' is {channels}; the {name} benchmark has {list(bench.channels)}")
+        raise SchemaError(f"{where}: attribute 'channels' is {channels}; "
+                          f"the {name} benchmark has {list(bench.channels)}")
     observed = as_str(f.attrs["observed_channel"])
     if observed not in channels:
         raise SchemaError(f"{where}: attribute 'observed_channel' {observed!r} is not one of the channels {channels}")
@@ -144,7 +146,8 @@ def validate(f: h5py.File) -> Benchmark:
             raise SchemaError(f"{where}: missing or malformed dataset 'coords/{axis}' (expected shape ({n},))")
     for item in ("mean", "std"):
         if "stats" not in f or item not in f["stats"] or f["stats"][item].shape != (len(channels),):
-            raise SchemaError(f"{where}: missing or malformed dataset 'stats/{item}' (expected shape ({len(channels)},))")
+            raise SchemaError(f"{where}: missing or malformed dataset 'stats/{item}' "
+                              f"(expected shape ({len(channels)},))")
     if np.any(np.asarray(f["stats"]["std"]) <= 0):
         raise SchemaError(f"{where}: dataset 'stats/std' has non-positive entries")
     return bench

@@ -50,7 +50,8 @@ def draw_field(ax, bench: Benchmark, coords, field: np.ndarray, sensors=None, fl
             in_plane = np.ones(len(sensors), dtype=bool)
         img = np.ma.masked_where(~mask, plane) if mask is not None else plane
         x, y = coords[0], coords[1]
-        extent = (x[0] - (x[1] - x[0]) / 2, x[-1] + (x[1] - x[0]) / 2, y[0] - (y[1] - y[0]) / 2, y[-1] + (y[1] - y[0]) / 2)
+        half_x, half_y = (x[1] - x[0]) / 2, (y[1] - y[0]) / 2
+        extent = (x[0] - half_x, x[-1] + half_x, y[0] - half_y, y[-1] + half_y)
         from matplotlib import colormaps
 
         im = ax.imshow(img.T, origin="lower", extent=extent, cmap=colormaps[cmap].with_extremes(bad="0.6"),
@@ -72,7 +73,8 @@ def render_field(bench: Benchmark, coords, field: np.ndarray, sensors, fluid_mas
     return _to_rgb(fig)
 
 
-def render_panels(bench: Benchmark, coords, panels: list[tuple[str, np.ndarray]], sensors, fluid_mask=None) -> np.ndarray:
+def render_panels(bench: Benchmark, coords, panels: list[tuple[str, np.ndarray]], sensors,
+                  fluid_mask=None) -> np.ndarray:
     """Several fields side by side (e.g. truth, estimate, error) as one (H, W, 3) uint8 image."""
     fig, axes = _figure(len(panels))
     for ax, (title, field) in zip(axes, panels):

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..benchmarks import BENCHMARKS, Benchmark
-from ..names import MODEL_KINDS
+from ..names import MODEL_KINDS  # noqa: F401 - re-exported: the one list of model kinds, for models/
 
 MODEL_PRESETS = ("paper", "lite")
 

@@ -75,7 +75,8 @@ def fingerprint_differences(shipped: dict[str, Any], local: dict[str, Any], rtol
     differences = []
     for key in ("benchmark", "preset", "generator", "generator_version", "train_shape"):
         if shipped.get(key) != local.get(key):
-            differences.append(f"{key.replace('_', ' ')} {local.get(key)!r} (the shipped model's: {shipped.get(key)!r})")
+            differences.append(f"{key.replace('_', ' ')} {local.get(key)!r} "
+                               f"(the shipped model's: {shipped.get(key)!r})")
     if shipped.get("train_params_sha256") != local.get("train_params_sha256"):
         differences.append("the train split's parameters")
     if differences:  # statistics of another split or generator say nothing more

@@ -7,8 +7,9 @@ the latent models (:data:`~dks_gym.names.MODEL_KINDS`): it has no forecast and n
 
 A torch implementation of the published architecture, not the ``pyshred`` package: installing pyshred 1.1.0
 beside dks-gym would downgrade numpy to 1.26.4 (dks-gym runs on numpy 2) and pull pysindy, pandas, cmake and
-scs (``pip install --dry-run pyshred``). As published: an LSTM of 2 layers of 64 units over the last ``lags`` frames of readings, whose
-last hidden state goes through a shallow decoder of 350 and 400 ReLU units with dropout 0.1. As in
+scs (``pip install --dry-run pyshred``). As published: an LSTM of 2 layers of 64 units over the last ``lags``
+frames of readings, whose last hidden state goes through a shallow decoder of 350 and 400 ReLU units with
+dropout 0.1. As in
 pyshred's compressed mode (and SHRED-ROM), the decoder outputs the leading ``rank`` POD coefficients of the
 standardized training fields, so the output layer does not scale with the grid; :meth:`Shred.project`
 gives the projection whose error bounds it.

@@ -354,7 +354,8 @@ def _describe(conf: Mapping[str, Any]) -> dict[str, Any]:
     return {
         "mesh": mesh_counts(conf),
         "units": "lengths in R, times in R/U, velocity in U, p kinematic in U^2",
-        "time_origin": "time counts from the first recorded frame; extras/t_start is when that was after the impulsive start",
+        "time_origin": ("time counts from the first recorded frame; extras/t_start is when that was after the "
+                        "impulsive start"),
         "initial_kick": {**KICK, "amplitude": float(conf["kick"])},
         "resampling": "linear on a Delaunay triangulation of cell and boundary-face centres; body cells 0",
         "extras": {"lift": "C_l = F_y / (0.5 rho U^2 D) per unit depth, every force_dt from the first frame",

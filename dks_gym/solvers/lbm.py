@@ -348,7 +348,8 @@ class LBM:
         if self.smagorinsky > 0:
             pi = torch.matmul(self._cc, fneq)
             pipi = (pi * pi * self._mult).sum(1, keepdim=True)
-            tau = 0.5 * (self._tau0 + torch.sqrt(self._tau0**2 + 18.0 * self.smagorinsky**2 * torch.sqrt(2.0 * pipi) / rho))
+            eddy = 18.0 * self.smagorinsky**2 * torch.sqrt(2.0 * pipi) / rho
+            tau = 0.5 * (self._tau0 + torch.sqrt(self._tau0**2 + eddy))
         else:
             tau = self._tau0
         post = ff - (self._fluid / tau) * fneq
