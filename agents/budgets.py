@@ -113,7 +113,7 @@ def finished_budgets(out: Path, task: PlacementTask, scenario: Scenario) -> dict
     cfg = doc["config"]
     asked = {"benchmark": (doc["benchmark"], task.benchmark.name),
              "model": (cfg["model"], task.model.kind),
-             "filter": (cfg["filter"], task.config.kind),
+             "filter": (cfg["filter"], task.config.filter.kind),
              "model_preset": (cfg["model_preset"], task.model_preset),
              "noise_level": (cfg["noise_level"], task.config.noise_level),
              "noise_seeds": (len(cfg["noise_seeds"]), scenario.noise_seeds),

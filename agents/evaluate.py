@@ -2,7 +2,8 @@
 
 :func:`evaluate_placement` (and ``dks-gym evaluate-placement``) fits each policy on the training split,
 then filters every test trajectory with its layouts as one batch (static policies: one layout per episode,
-:func:`~dks_gym_agents.scoring.run_layouts`; adaptive ones: a layout per step, :func:`~dks_gym_agents.scoring.run_adaptive`).
+:func:`~dks_gym_agents.scoring.run_layouts`; adaptive ones: a layout per step,
+:func:`~dks_gym_agents.scoring.run_adaptive`).
 The measurement noise depends only on (noise seed, split, trajectory, frame, cell), so every policy is
 judged on the same noise realization, and a cell read by two policies reads the same value.
 
