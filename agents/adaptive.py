@@ -132,6 +132,10 @@ class PPOAdaptive(AdaptivePolicy):
         action, _ = self.agent.predict(np.asarray(belief, dtype=np.float32), deterministic=True)
         return np.atleast_2d(action)
 
+    def save_agents_to(self, folder: Path) -> None:
+        if self.settings["out"] is None:
+            self.settings["out"] = folder
+
     @property
     def offline_seconds(self) -> float:
         return offline_seconds(self.fit_seconds, self.checkpoint, self.meta)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import click
@@ -9,8 +10,11 @@ import click
 from dks_gym.benchmarks import BENCHMARKS
 from dks_gym.names import FILTERS, MODEL_KINDS
 
-from .evaluate import POLICIES
+from .adaptive import PPOAdaptive
+from .baselines import GREEDY_OBJECTIVES, GreedyLayout
 from .policies import CONSTRAINTS
+from .registry import POLICIES, PolicyFactory, random_layouts
+from .sequential import SequentialLayout
 
 
 @click.command("evaluate-placement")
@@ -84,33 +88,47 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
     from dks_gym.filters import FilterDivergence
     from dks_gym.models.checkpoint import CheckpointMissing
 
-    from .evaluate import evaluate_budgets, evaluate_placement
+    from .budgets import evaluate_budgets
+    from .evaluate import evaluate_placement
+    from .policies import PlacementTask
+    from .scenario import Scenario
 
     try:
-        scenario = parse_faults(faults)
-        allowed = constraint if constraint in CONSTRAINTS else _load_array(constraint)
-        options = dict(model=model, filter=filter_, model_preset=preset, data_preset=data_preset,
-                       noise_level=noise_level, noise_seed=noise_seed, noise_seeds=noise_seeds, faults=scenario,
-                       constraint=allowed, shred=[name.strip() for name in shred.split(",") if name.strip()],
-                       random_seeds=random_seeds, greedy_candidates=greedy_candidates,
-                       greedy_trajectories=greedy_trajectories, sequential=sequential_ckpt, ppo=ppo_ckpt,
-                       agent_timesteps=agent_timesteps, device=device, train_if_missing=train_if_missing,
-                       log=click.echo)
-        if budgets is not None:
-            evaluate_budgets(benchmark.lower(), policies, parse_budgets(budgets), out=out, resume=resume,
-                             **options)
-        elif resume:
+        scenario = Scenario(noise_seeds=noise_seeds, faults=parse_faults(faults),
+                            constraint=constraint if constraint in CONSTRAINTS else _load_array(constraint),
+                            shred=[name.strip() for name in shred.split(",") if name.strip()])
+        registry = policy_registry(random_seeds, greedy_candidates, greedy_trajectories, sequential_ckpt, ppo_ckpt,
+                                   agent_timesteps)
+        sweep = parse_budgets(budgets) if budgets is not None else None
+        if resume and sweep is None:
             raise ValueError("--resume keeps the finished budgets of a --budgets sweep; give --budgets")
+        task = PlacementTask.load(benchmark.lower(), model, model_preset=preset, data_preset=data_preset,
+                                  device=device, train_if_missing=train_if_missing, kind=filter_,
+                                  n_sensors=n_sensors if sweep is None else min(sweep), noise_level=noise_level,
+                                  noise_seed=noise_seed)
+        if sweep is not None:
+            evaluate_budgets(task, sweep, scenario, policies, registry=registry, out=out, resume=resume,
+                             log=click.echo)
         else:
-            evaluate_placement(benchmark.lower(), policies, n_sensors=n_sensors, out=out, **options)
+            evaluate_placement(task, policies, scenario, registry=registry, out=out, log=click.echo)
     except (CheckpointMissing, DatasetMissing, SchemaError, ResultsError, FilterDivergence, FileNotFoundError,
             ValueError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo((out / ("budgets.md" if budgets is not None else "placement.md")).read_text())
 
 
+def policy_registry(random_seeds: int, greedy_candidates: int | None, greedy_trajectories: int | None,
+                    sequential: Path | None, ppo: Path | None, agent_timesteps: int | None) -> dict[str, PolicyFactory]:
+    """The named policies with the knobs of the command's options bound (:data:`~dks_gym_agents.registry.POLICIES`)."""
+    steps = {} if agent_timesteps is None else {"timesteps": int(agent_timesteps)}
+    greedy = {"n_candidates": greedy_candidates, "n_trajectories": greedy_trajectories}
+    return {**POLICIES, "random": partial(random_layouts, random_seeds),
+            **{name: partial(GreedyLayout, objective, **greedy) for objective, name in GREEDY_OBJECTIVES.items()},
+            "sequential": partial(SequentialLayout, sequential, **steps), "ppo": partial(PPOAdaptive, ppo, **steps)}
+
+
 def parse_faults(text: str) -> str | dict | None:
-    """'none', 'default' or a JSON object of SensorFaults fields, as evaluate_placement takes it."""
+    """'none', 'default' or a JSON object of SensorFaults fields, as a Scenario takes it."""
     import json
 
     if text in ("none", "default"):

@@ -44,6 +44,7 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -60,7 +61,8 @@ class PlacementTask:
 
     ``config`` holds the filter settings (filter kind, initial condition, noise level, P0, Q, noise seed,
     ``n_sensors``); its ``split`` is the split the policy is *evaluated* on, never read by ``fit``.
-    ``candidates`` restricts the cells a policy may choose (default: every fluid cell).
+    ``candidates`` restricts the cells a policy may choose (default: every fluid cell). ``model_preset``: the
+    preset the model was trained with, recorded with the results.
     """
 
     dataset: Dataset
@@ -69,6 +71,7 @@ class PlacementTask:
     candidates: np.ndarray | None = None
     seed: int = 0
     device: str = "cpu"
+    model_preset: str = "lite"
 
     def __post_init__(self) -> None:
         if getattr(self.model, "benchmark", None) != self.benchmark.name:
@@ -109,7 +112,8 @@ class PlacementTask:
                             train_if_missing=train_if_missing, progress=False)
         if train_if_missing:  # a model trained here is tuned here too
             tune_if_missing(latent, dataset, progress=False)
-        return cls(dataset, latent, AssimilationConfig().replace(**config), candidates=candidates, seed=seed, device=device)
+        return cls(dataset, latent, AssimilationConfig().replace(**config), candidates=candidates, seed=seed,
+                   device=device, model_preset=model_preset)
 
     @property
     def benchmark(self) -> Benchmark:
@@ -291,6 +295,9 @@ class PlacementPolicy(ABC):
     def offline_seconds(self) -> float:
         """Offline cost: ``fit_seconds`` plus any training recorded in a checkpoint the policy loaded."""
         return self.fit_seconds
+
+    def save_agents_to(self, folder: Path) -> None:
+        """Where a learned policy saves the agent it trains when it was given no folder (default: nothing to save)."""
 
     def describe(self) -> dict[str, Any]:
         """Settings worth storing with the results (JSON-serializable)."""

@@ -262,6 +262,10 @@ class SequentialLayout(StaticPolicy):
             done = env.place(int(action))
         return env.layout
 
+    def save_agents_to(self, folder: Path) -> None:
+        if self.settings["out"] is None:
+            self.settings["out"] = folder
+
     @property
     def offline_seconds(self) -> float:
         return offline_seconds(self.fit_seconds, self.checkpoint, self.meta)

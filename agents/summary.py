@@ -17,9 +17,14 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from dks_gym.evaluation.formatting import fixed, markdown_table, sci
 from dks_gym.evaluation.results import load_results
 
-from .evaluate import _sci, describe_faults
+from .tables import describe_faults
+
+
+SUMMARY_HEADER = ("m", "best filter policy", "random mean", "SHRED (QR layout)", "SHRED / filter on QR",
+                  "forward run")
 
 
 def load_benchmark(folder: str | Path) -> dict[str, dict[str, dict[int, dict[str, Any]]]]:
@@ -66,8 +71,8 @@ def _fault_cost_table(bench: str, faulted: str, clean: str, with_faults: dict[in
     lines = [f"### {bench}: what the default faults cost{where}", "",
              f"Time-averaged MSE of `{faulted}` over `{clean}`, per policy and budget "
              "(the same episodes and noise; > 1: the faults cost).", ""]
-    lines += ["| policy | " + " | ".join(f"m = {m}" for m in budgets) + " |", "|---|" + "---|" * len(budgets)]
     names = [n for n in _by_policy(without[budgets[0]]) if not n.startswith("random-")]
+    rows = []
     for name in [*names, "random mean"]:
         cells = []
         for m in budgets:
@@ -77,8 +82,9 @@ def _fault_cost_table(bench: str, faulted: str, clean: str, with_faults: dict[in
             else:
                 x = a.get(name, {}).get("time_mean_mse_mean")
                 y = b.get(name, {}).get("time_mean_mse_mean")
-            cells.append(f"{x / y:.2f}" if x and y else "-")
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+            cells.append(fixed(x / y, 2) if x and y else "-")
+        rows.append([name, *cells])
+    lines.append(markdown_table(["policy", *(f"m = {m}" for m in budgets)], rows))
     return [*lines, ""]
 
 
@@ -97,23 +103,21 @@ def summary_table(runs: dict[str, dict[str, dict[int, dict[str, Any]]]], figures
             lines += [f"## {bench}, {scenario}", ""]
             if figures is not None:
                 lines += [f"![{bench}, {scenario}: error vs budget]({figures}/{bench}/{scenario}/budgets.png)", ""]
-            lines += [
-                      f"{cfg['model']} ({cfg['model_preset']}) {cfg['filter']}, noise level {cfg['noise_level']:g}, "
+            lines += [f"{cfg['model']} ({cfg['model_preset']}) {cfg['filter']}, noise level {cfg['noise_level']:g}, "
                       f"{cfg['n_episodes']} episodes, faults: {describe_faults(cfg.get('faults'))}"
-                      + (", constrained candidates" if cfg.get("constrained") else "") + ".", "",
-                      "| m | best filter policy | random mean | SHRED (QR layout) | SHRED / filter on QR | forward run |",
-                      "|---|---|---|---|---|---|"]
+                      + (", constrained candidates" if cfg.get("constrained") else "") + ".", ""]
+            rows = []
             for m in budgets:
                 recs = _by_policy(docs[m])
                 ranked = sorted((r for n, r in recs.items() if _is_filter_policy(n)),
                                 key=lambda r: r["time_mean_mse_mean"])
                 best = ranked[0] if ranked else None
                 shred, qr = recs.get("shred-qr"), recs.get("qr")
-                ratio = (f"{shred['time_mean_mse_mean'] / qr['time_mean_mse_mean']:.2f}"
-                         if shred and qr else "-")
-                lines.append(f"| {m} | {best['policy'] if best else '-'} {_sci(best and best['time_mean_mse_mean'])} "
-                             f"| {_sci(_random_mean(recs))} | {_sci(shred and shred['time_mean_mse_mean'])} | {ratio} "
-                             f"| {_sci(recs.get('forward', {}).get('time_mean_mse_mean'))} |")
+                ratio = fixed(shred["time_mean_mse_mean"] / qr["time_mean_mse_mean"], 2) if shred and qr else "-"
+                rows.append([str(m), f"{best['policy'] if best else '-'} {sci(best and best['time_mean_mse_mean'])}",
+                             sci(_random_mean(recs)), sci(shred and shred["time_mean_mse_mean"]), ratio,
+                             sci(recs.get("forward", {}).get("time_mean_mse_mean"))])
+            lines.append(markdown_table(SUMMARY_HEADER, rows))
             lines.append("")
         for faulted, clean in fault_pairs(scenarios):
             lines += _fault_cost_table(bench, faulted, clean, scenarios[faulted], scenarios[clean])

@@ -534,7 +534,8 @@ def test_a_policy_that_cannot_be_fitted_at_a_budget_is_skipped_not_fatal(burgers
     """evaluate_budgets leaves out a policy whose fit fails at one budget (QR with more sensors than POD modes)
     and says so in the table; a single ranking still stops on it."""
     from dks_gym_agents import StaticPolicy
-    from dks_gym_agents.evaluate import evaluate_budgets, evaluate_placement
+    from dks_gym_agents.budgets import evaluate_budgets
+    from dks_gym_agents.evaluate import evaluate_placement
 
     class TooGreedy(StaticPolicy):
         name = "too-greedy"
@@ -542,49 +543,50 @@ def test_a_policy_that_cannot_be_fitted_at_a_budget_is_skipped_not_fatal(burgers
         def choose(self, task):
             raise ValueError("the training snapshots hold only 3 POD modes")
 
-    docs = evaluate_budgets("burgers", ["paper", TooGreedy()], [4], task=burgers_task, out=tmp_path, log=lambda _: None)
+    docs = evaluate_budgets(burgers_task, [4], policies=["paper", TooGreedy()], out=tmp_path, log=lambda _: None)
     table = (tmp_path / "budgets.md").read_text()
     assert "| too-greedy | skipped |" in table and "only 3 POD modes" in table
     assert docs[4]["config"]["skipped_policies"] == {"too-greedy": "the training snapshots hold only 3 POD modes"}
     with pytest.raises(ValueError, match="only 3 POD modes"):
-        evaluate_placement("burgers", ["paper", TooGreedy()], task=burgers_task, log=lambda _: None)
+        evaluate_placement(burgers_task, ["paper", TooGreedy()], log=lambda _: None)
 
 
 def test_a_resumed_sweep_keeps_finished_budgets_and_refuses_other_settings(burgers_task, tmp_path: Path) -> None:
     """resume=True keeps a budget an earlier sweep finished (its file untouched), runs the others, tables every
     budget of the folder; a folder made with other settings is refused before anything runs."""
     from dks_gym.evaluation.results import load_results
-    from dks_gym_agents.evaluate import evaluate_budgets
+    from dks_gym_agents.budgets import evaluate_budgets
+    from dks_gym_agents.scenario import Scenario
 
-    evaluate_budgets("burgers", "paper", [2], task=burgers_task, out=tmp_path, log=lambda _: None)
+    evaluate_budgets(burgers_task, [2], policies="paper", out=tmp_path, log=lambda _: None)
     first = (tmp_path / "m2" / "placement.json").read_bytes()
     said: list[str] = []
-    docs = evaluate_budgets("burgers", "paper", [4], task=burgers_task, out=tmp_path, resume=True, log=said.append)
+    docs = evaluate_budgets(burgers_task, [4], policies="paper", out=tmp_path, resume=True, log=said.append)
     assert (tmp_path / "m2" / "placement.json").read_bytes() == first
     assert sorted(docs) == [2, 4] and "m = 2" in (tmp_path / "budgets.md").read_text()
     assert not any("budget m = 2" == line for line in said) and "budget m = 4" in said
-    docs = evaluate_budgets("burgers", "paper", [2, 4], task=burgers_task, out=tmp_path, resume=True,
+    docs = evaluate_budgets(burgers_task, [2, 4], policies="paper", out=tmp_path, resume=True,
                             log=said.append)
     assert [line for line in said if line.startswith("budget m")][-2:] == [
         f"budget m = {m}: kept {tmp_path / f'm{m}' / 'placement.json'}" for m in (2, 4)]
     with pytest.raises(ValueError, match="faults differ"):
-        evaluate_budgets("burgers", "paper", [8], task=burgers_task, out=tmp_path, resume=True, faults="default")
+        evaluate_budgets(burgers_task, [8], Scenario(faults="default"), "paper", out=tmp_path, resume=True)
     assert not (tmp_path / "m8").exists()
     # with faults too: the budget run here and the one read back compare equal (tuples in one, lists in the other)
-    evaluate_budgets("burgers", "paper", [2], task=burgers_task, out=tmp_path / "f", faults="default",
+    evaluate_budgets(burgers_task, [2], Scenario(faults="default"), "paper", out=tmp_path / "f",
                      log=lambda _: None)
-    docs = evaluate_budgets("burgers", "paper", [2, 4], task=burgers_task, out=tmp_path / "f", resume=True,
-                            faults="default", log=lambda _: None)
+    docs = evaluate_budgets(burgers_task, [2, 4], Scenario(faults="default"), "paper", out=tmp_path / "f",
+                            resume=True, log=lambda _: None)
     assert sorted(docs) == [2, 4] and "m = 4" in (tmp_path / "f" / "budgets.md").read_text()
     stale = load_results(tmp_path / "m4" / "placement.json")
     stale["config"]["noise_level"] = 0.5
     (tmp_path / "m4" / "placement.json").write_text(json.dumps(stale))
     with pytest.raises(ValueError, match="noise_level differ"):
-        evaluate_budgets("burgers", "paper", [8], task=burgers_task, out=tmp_path, resume=True)
+        evaluate_budgets(burgers_task, [8], policies="paper", out=tmp_path, resume=True)
 
 
 def test_bad_input_is_refused(burgers_task: PlacementTask, cfd_tasks) -> None:
-    from dks_gym_agents.evaluate import make_policies
+    from dks_gym_agents.registry import make_policies
 
     cyl = cfd_tasks["cylinder"]
     body = np.flatnonzero(~cyl.fluid_mask.ravel())[:3]
@@ -637,7 +639,8 @@ def test_custom_policy_objects_are_ranked_beside_named_ones(burgers_task, tmp_pa
     """evaluate_placement takes the user's own StaticPolicy next to the built-in names and runs its layout;
     duplicate names and unknown names are refused."""
     from dks_gym_agents import StaticPolicy
-    from dks_gym_agents.evaluate import evaluate_placement, make_policies
+    from dks_gym_agents.evaluate import evaluate_placement
+    from dks_gym_agents.registry import make_policies
 
     class Clustered(StaticPolicy):
         name = "clustered"
@@ -646,7 +649,7 @@ def test_custom_policy_objects_are_ranked_beside_named_ones(burgers_task, tmp_pa
             return task.fluid_cells[:task.n_sensors]
 
     task = dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=4))
-    _, results = evaluate_placement("burgers", ["paper", Clustered()], task=task, log=lambda _: None)
+    _, results = evaluate_placement(task, ["paper", Clustered()], log=lambda _: None)
     by_name = {r.name: r for r in results}
     np.testing.assert_array_equal(by_name["clustered"].layouts[0], task.fluid_cells[:4])
     assert set(by_name) == {"paper", "clustered"}
@@ -659,7 +662,8 @@ def test_custom_policy_objects_are_ranked_beside_named_ones(burgers_task, tmp_pa
 def test_paired_vs_random_from_a_results_document(tmp_path: Path) -> None:
     """The paired comparison with the random layouts: per-episode log ratio to the random mean (the other
     seeds' for a random row), its standard error, the geometric variant and the wins, from JSON alone."""
-    from dks_gym_agents.evaluate import paired_vs_random, ranked_table
+    from dks_gym_agents.paired import paired_vs_random
+    from dks_gym_agents.tables import ranked_table
 
     def rec(policy, values, trajectories=(0, 1, 0, 1)):
         return {"experiment": f"placement/{policy}", "policy": policy, "per_trajectory_time_mean_mse": list(values),
@@ -716,7 +720,7 @@ def test_m16_layouts_on_cfd_geometries_and_their_figure(bench: str, cfd_tasks_m1
         layout = policy.fit(task).layout
         check_layout(task, layout)
         assert layout.shape == (16,) and len(set(layout.tolist())) == 16 and fluid[layout].all(), policy.name
-    doc, results = evaluate_placement(bench, policies, task=task, out=tmp_path, log=lambda _: None)
+    doc, results = evaluate_placement(task, policies, out=tmp_path, log=lambda _: None)
     assert {r.name for r in results} == {"paper", "random-0", "random-1", "qr", *(p.name for p in greedy)}
     assert all(len(r["sensors"]) == 16 for r in doc["records"] if r["policy"] != "forward")
     qr = next(r for r in doc["records"] if r["policy"] == "qr")
@@ -731,15 +735,19 @@ def test_shred_ranks_beside_the_filters(burgers_task: PlacementTask, tmp_path: P
     policy not in the run is skipped with its reason."""
     from dks_gym.evaluation.results import load_results
     from dks_gym.models.shred import ShredConfig
-    from dks_gym_agents.evaluate import evaluate_budgets
+    from functools import partial
 
+    from dks_gym_agents.budgets import evaluate_budgets
+    from dks_gym_agents.registry import POLICIES, random_layouts
+    from dks_gym_agents.scenario import Scenario
     from dks_gym_agents.summary import fault_pairs, write_summary
 
-    quick = dict(task=burgers_task, random_seeds=2, shred=["paper", "qr"], log=lambda _: None,
-                 shred_config=ShredConfig(epochs=2, noise_seeds=1, rank=4))
-    docs = evaluate_budgets("burgers", "paper,random", [4], out=tmp_path / "burgers" / "none", **quick)
-    faulty = evaluate_budgets("burgers", "paper,random", [4], out=tmp_path / "burgers" / "default",
-                              faults="default", **quick)
+    quick = dict(registry={**POLICIES, "random": partial(random_layouts, 2)}, log=lambda _: None)
+    shred = dict(shred=["paper", "qr"], shred_config=ShredConfig(epochs=2, noise_seeds=1, rank=4))
+    docs = evaluate_budgets(burgers_task, [4], Scenario(**shred), "paper,random", out=tmp_path / "burgers" / "none",
+                            **quick)
+    faulty = evaluate_budgets(burgers_task, [4], Scenario(faults="default", **shred), "paper,random",
+                              out=tmp_path / "burgers" / "default", **quick)
     page = write_summary(tmp_path, tmp_path / "benchmark.md").read_text()
     assert "![burgers, none: error vs budget](./burgers/none/budgets.png)" in page  # the figure beside its table
     cost = faulty[4]["records"][0]["time_mean_mse_mean"] / docs[4]["records"][0]["time_mean_mse_mean"]
@@ -762,7 +770,7 @@ def test_shred_ranks_beside_the_filters(burgers_task: PlacementTask, tmp_path: P
 def test_your_own_policy_ranks_at_every_budget(burgers_task: PlacementTask, tmp_path: Path) -> None:
     """An unfitted policy object is fitted afresh at each budget (a copy); a fitted one is refused."""
     from dks_gym_agents import StaticPolicy
-    from dks_gym_agents.evaluate import evaluate_budgets
+    from dks_gym_agents.budgets import evaluate_budgets
 
     class Leftmost(StaticPolicy):
         name = "leftmost"
@@ -771,14 +779,14 @@ def test_your_own_policy_ranks_at_every_budget(burgers_task: PlacementTask, tmp_
             return task.allowed_cells[: task.n_sensors]
 
     mine = Leftmost()
-    docs = evaluate_budgets("burgers", ["paper", mine], [2, 3], task=burgers_task, out=tmp_path, log=lambda _: None)
+    docs = evaluate_budgets(burgers_task, [2, 3], policies=["paper", mine], out=tmp_path, log=lambda _: None)
     for m in (2, 3):
         rec = next(r for r in docs[m]["records"] if r["policy"] == "leftmost")
         assert rec["sensors"] == burgers_task.allowed_cells[:m].tolist()
     assert mine.task is None  # the caller's object is left as it was
     mine.fit(burgers_task)
     with pytest.raises(ValueError, match="fitted policy object"):
-        evaluate_budgets("burgers", [mine], [2, 3], task=burgers_task, out=tmp_path, log=lambda _: None)
+        evaluate_budgets(burgers_task, [2, 3], policies=[mine], out=tmp_path, log=lambda _: None)
 
 
 def test_the_linearization_is_reused_only_for_the_same_inputs(burgers_task: PlacementTask) -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from dks_gym.dataset import Dataset
 from dks_gym.models.shred import Shred, ShredConfig, read_episodes
-from dks_gym_agents.evaluate import frame_errors
+from dks_gym_agents.shred_baseline import frame_errors
 
 QUICK = ShredConfig(epochs=40, patience=40, noise_seeds=1, rank=8)
 

@@ -28,7 +28,7 @@ from dks_gym.evaluation.results import load_results
 from dks_gym.home import dataset_path
 from dks_gym.models.checkpoint import dataset_identity
 from dks_gym.models.shred import Shred, ShredConfig, read_episodes
-from dks_gym_agents.evaluate import frame_errors
+from dks_gym_agents.shred_baseline import frame_errors
 
 
 def study(run: Path, n_seeds: int) -> dict:

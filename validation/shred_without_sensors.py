@@ -23,7 +23,7 @@ from dks_gym.atomic import atomic_path
 from dks_gym.dataset import Dataset
 from dks_gym.home import dataset_path
 from dks_gym.models.shred import Shred, read_episodes
-from dks_gym_agents.evaluate import frame_errors
+from dks_gym_agents.shred_baseline import frame_errors
 
 
 def study(benchmark: str, m: int) -> dict:

@@ -3,7 +3,8 @@ tables, the demo, the placement ranking, ``dks-gym compare`` and the README's re
 
 Errors and other scores print with three significant digits (:func:`sci`): plainly between 0.01 and 1000,
 in scientific notation outside (``1.29e+03``, ``3.90e-04``); a missing or non-finite value prints as ``-``.
-Ratios and times print with three significant digits (:func:`sig`), fractions with fixed decimals.
+Ratios and times print with three significant digits (:func:`sig`), fractions with fixed decimals, log
+ratios with their sign (:func:`signed`).
 """
 
 from __future__ import annotations
@@ -42,6 +43,11 @@ def fixed(x: float | None, decimals: int = 3) -> str:
     return f"{x:.{decimals}f}" if _finite(x) else MISSING
 
 
+def signed(x: float | None, decimals: int = 3) -> str:
+    """A log ratio or a difference with its sign and a fixed number of decimals (``+0.123``, ``-1.50``)."""
+    return f"{x:+.{decimals}f}" if _finite(x) else MISSING
+
+
 def cost(x: float | None, scale: float = 1.0, unit: str = "") -> str:
     """A cost (time, memory) scaled into ``unit``: three significant digits, ``1.2e-03`` below 0.01."""
     if not _finite(x):
@@ -68,4 +74,4 @@ def text_table(header: Sequence[str], rows: Sequence[Sequence[str]], widths: Seq
     return "\n".join([head, "-" * len(head)] + [line(row) for row in rows])
 
 
-__all__ = ["MISSING", "cost", "fixed", "markdown_table", "mean_std", "sci", "sig", "text_table"]
+__all__ = ["MISSING", "cost", "fixed", "markdown_table", "mean_std", "sci", "sig", "signed", "text_table"]

@@ -1,0 +1,163 @@
+"""The placement tables: one ranking (``placement.md``) and the error-vs-budget table (``budgets.md``), both made
+from results documents alone, every number printed by :mod:`dks_gym.evaluation.formatting`.
+
+``placement.md`` ranks the policies by time-averaged MSE (frames 1..n_t-1, frame 0 being the same initial
+estimate for all) with final-time and time-averaged MSE mean and std across *episodes* (an episode = one test
+trajectory under one noise seed, so the std mixes trajectory-to-trajectory and noise-to-noise spread), the
+per-episode (paired) ratio to the paper layout, the paired comparison with the random layouts
+(:func:`~dks_gym_agents.paired.paired_vs_random`) and the costs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dks_gym.envs import SensorFaults
+from dks_gym.evaluation.formatting import cost, fixed, markdown_table, mean_std, sci, signed
+from dks_gym.evaluation.results import load_results, save_results
+
+from .paired import add_paired_vs_random, paired_vs_random
+
+RANKED_HEADER = ("rank", "policy", "time-avg MSE (mean ± std)", "final MSE (mean ± std)",
+                 "time-avg / paper, paired (mean ± std)", "better than paper",
+                 "log(MSE / random mean), paired (mean ± s.e.)", "better than random mean", "offline cost",
+                 "per decision")
+
+
+def _versus_paper(rec: dict[str, Any], paper: dict[str, Any] | None) -> list[str]:
+    """The per-episode ratio to the paper layout (mean ± std) and the episodes where ``rec`` beats it."""
+    if paper is None:
+        return ["-", "-"]
+    a = np.asarray(rec["per_trajectory_time_mean_mse"], dtype=float)
+    b = np.asarray(paper["per_trajectory_time_mean_mse"], dtype=float)
+    q = a / b
+    return [f"{fixed(q.mean())} ± {fixed(q.std(ddof=1) if len(q) > 1 else 0.0)}", f"{int(np.sum(a < b))}/{len(q)}"]
+
+
+def _versus_random(paired: dict[str, Any] | None) -> list[str]:
+    """The paired log ratio to the random mean (mean ± s.e.) and the episodes won."""
+    if paired is None:
+        return ["-", "-"]
+    return [f"{signed(paired['log_ratio_mean'])} ± {fixed(paired['log_ratio_se'])}",
+            f"{paired['wins']}/{paired['n_episodes']}"]
+
+
+def _ranked_notes(doc: dict[str, Any], paired: dict[str, dict[str, Any]]) -> list[str]:
+    """What the ranked table's columns mean, and the random layouts' spread: the lines under it."""
+    cfg = doc["config"]
+    notes = [
+        "",
+        f"{doc['benchmark']}, {cfg['model']} ({cfg['model_preset']}, r={cfg['r']}) with {cfg['filter']}, "
+        f"m={cfg['n_sensors']}, noise level {cfg['noise_level']:g}; {cfg['n_episodes']} test episodes = "
+        f"{cfg['n_test']} trajectories x {len(cfg['noise_seeds'])} noise seed(s) {cfg['noise_seeds']}, "
+        f"{cfg['n_frames']} frames each. MSE in physical units over the scored channels; std = sample std "
+        "across episodes (trajectory x noise seed: it mixes how hard the trajectories are with the noise); "
+        "paired ratio = per-episode time-averaged MSE divided by the paper layout's on the "
+        "same trajectory and noise. Paired vs random: per episode, log of the policy's time-averaged MSE over "
+        "the mean of the random layouts' on the same episode (for a random-s row, the other seeds), mean ± "
+        "standard error (std / sqrt(episodes)); negative = better than random; 'better than random mean' "
+        "counts those episodes. Offline cost = fitting on the "
+        "training split (incl. RL training, also when loaded from a checkpoint); per decision = one layout "
+        "(static: per episode; adaptive: per step and trajectory).",
+    ]
+    randoms = [r["time_mean_mse_mean"] for r in doc["records"]
+               if r["experiment"].startswith("placement/") and r["policy"].startswith("random-")]
+    if len(randoms) > 1:
+        own = [p["log_ratio_mean"] for k, p in paired.items() if k.startswith("random-")]
+        notes.append(f"Random layouts ({len(randoms)} seeds): time-averaged MSE "
+                     f"{mean_std(float(np.mean(randoms)), float(np.std(randoms, ddof=1)))} "
+                     f"(mean ± std over seeds); their own paired log ratios "
+                     f"against the other seeds' mean average {signed(float(np.mean(own)))} (the arithmetic mean is "
+                     "pulled up by the worst layouts), the bar a policy must clear to beat a typical random layout; "
+                     "placement.json also holds the log ratio against the geometric mean "
+                     "(paired_vs_random.log_ratio_geometric_mean), for which that bar is 0.")
+    return notes
+
+
+def ranked_table(doc: dict[str, Any]) -> str:
+    """Markdown: policies ranked by time-averaged MSE, with final MSE, paired ratio to the paper layout, costs."""
+    recs = [r for r in doc["records"] if r["experiment"].startswith("placement/")]
+    policies = sorted((r for r in recs if r["policy"] != "forward"), key=lambda r: r["time_mean_mse_mean"])
+    paper = next((r for r in recs if r["policy"] == "paper"), None)
+    forward = next((r for r in recs if r["policy"] == "forward"), None)
+    paired = paired_vs_random(doc)
+
+    def errors(rec: dict[str, Any]) -> list[str]:
+        return [mean_std(rec["time_mean_mse_mean"], rec["time_mean_mse_std"]),
+                mean_std(rec["final_mse_mean"], rec["final_mse_std"]),
+                *_versus_paper(rec, paper), *_versus_random(paired.get(rec["policy"]))]
+
+    rows = [[str(i), rec["policy"] + (" (adaptive)" if rec.get("adaptive") else ""), *errors(rec),
+             cost(rec.get("offline_seconds"), 1, " s"), cost(rec.get("decision_seconds"), 1e3, " ms")]
+            for i, rec in enumerate(policies, 1)]
+    if forward is not None:
+        rows.append(["-", "forward run (no sensors)", *errors(forward), "-", "-"])
+    return "\n".join([markdown_table(RANKED_HEADER, rows), *_ranked_notes(doc, paired)]) + "\n"
+
+
+def rewrite_tables(folder: str | Path) -> Path:
+    """Recompute ``paired_vs_random`` and ``placement.md`` of a finished run from its ``placement.json``
+    (no filter runs): ``python -c "from dks_gym_agents.tables import rewrite_tables; rewrite_tables('DIR')"``."""
+    folder = Path(folder)
+    doc = add_paired_vs_random(load_results(folder / "placement.json"))
+    save_results(doc, folder / "placement.json")
+    (folder / "placement.md").write_text(ranked_table(doc))
+    return folder / "placement.md"
+
+
+def budget_rows(docs: dict[int, dict[str, Any]]) -> dict[str, dict[int, dict[str, Any]]]:
+    """``{policy: {m: record}}`` over the budgets' documents; the random layouts as one row, ``random``, the
+    first seed's record (it holds the paired comparison with the others)."""
+    rows: dict[str, dict[int, dict[str, Any]]] = {}
+    for m, doc in docs.items():
+        for rec in doc["records"]:
+            name = rec.get("policy")
+            if name is None or name.startswith("random-") and name != "random-0":
+                continue
+            rows.setdefault("random" if name == "random-0" else name, {})[m] = rec
+    return rows
+
+
+def describe_faults(faults: dict[str, Any] | None) -> str:
+    """The fault settings that differ from none, as ``name value`` pairs ("none" without faults)."""
+    scenario = SensorFaults.from_any(faults)
+    return "none" if scenario is None else ", ".join(f"{k} {v}" for k, v in scenario.changed().items())
+
+
+def _budget_cell(rec: dict[str, Any] | None, skipped: bool) -> str:
+    """One policy at one budget: its time-averaged MSE and, in brackets, the paired log ratio to random ± se."""
+    if rec is None:
+        return "skipped" if skipped else "-"
+    text = sci(rec.get("time_mean_mse_mean"))
+    paired = rec.get("paired_vs_random")
+    if paired:
+        se = paired.get("log_ratio_se_trajectories")
+        text += f" ({signed(paired['log_ratio_mean'], 2)}" + (f" ± {fixed(se, 2)})" if se is not None else ")")
+    return text
+
+
+def budget_table(docs: dict[int, dict[str, Any]]) -> str:
+    """The error-vs-budget table: per policy and m, time-averaged MSE and the paired log ratio to random ± se."""
+    budgets = sorted(docs)
+    first = docs[budgets[0]]
+    cfg = first["config"]
+    lines = [f"# Sensor budgets: {first['benchmark']}, {cfg['model']} {cfg['filter']}", "",
+             f"Time-averaged MSE over frames 1..n_t-1 of the {cfg['n_episodes']} test episodes; in brackets the "
+             "paired log ratio to the random layouts of the same episodes (negative: better than random) ± its "
+             "standard error over trajectories. Random: the first seeded layout's MSE, the ratio of the mean of "
+             f"the others. Faults: {describe_faults(cfg.get('faults'))}.", ""]
+    skipped = {(name, m): reason for m, doc in docs.items()
+               for name, reason in doc["config"].get("skipped_policies", {}).items()}
+    rows = budget_rows(docs)
+    table = [[name, *(_budget_cell(rows.get(name, {}).get(m), (name, m) in skipped) for m in budgets)]
+             for name in dict.fromkeys([*rows, *(name for name, _ in skipped)])]
+    lines.append(markdown_table(["policy", *(f"m = {m}" for m in budgets)], table))
+    for (name, m), reason in sorted(skipped.items(), key=lambda item: item[0][1]):
+        lines.append(f"\n{name} skipped at m = {m}: {reason}")
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["budget_rows", "budget_table", "describe_faults", "ranked_table", "rewrite_tables"]
