@@ -1,6 +1,7 @@
 """Sensor-placement policies for dks-gym and the harness that ranks them with a latent filter in the loop.
 
-* :mod:`dks_gym_agents.policies`: the interface (:class:`PlacementTask`, :class:`StaticPolicy`, :class:`AdaptivePolicy`);
+* :mod:`dks_gym_agents.policies`: the interface (:class:`PlacementTask`, :class:`StaticPolicy`,
+  :class:`AdaptivePolicy`);
 * :mod:`dks_gym_agents.baselines`: paper layout, random layouts, QR or CCQR pivoting on POD modes, greedy;
 * :mod:`dks_gym_agents.sequential`: placement as an MDP (place m sensors one by one), PPO;
 * :mod:`dks_gym_agents.adaptive`: adaptive sensing, PPO on the filter's belief (``sensor_mode="select"``);

@@ -276,8 +276,8 @@ class GreedyLayout(StaticPolicy):
     (:func:`~dks_gym_agents.scoring.episode_information`); monotone and submodular in the layout, so the greedy
     layout is within (1 - 1/e) of the best one's gain over the prior. Candidates: ``candidates`` or
     :func:`~dks_gym_agents.policies.candidate_lattice` of ``n_candidates`` (default max(32, 2m)) allowed
-    cells; trajectories: ``n_trajectories`` spread over the training parameters. ``history`` holds the best objective after
-    each round, ``scores`` every candidate's score per round. ``max_batch`` caps the (layout, trajectory)
+    cells; trajectories: ``n_trajectories`` spread over the training parameters. ``history`` holds the best
+    objective after each round, ``scores`` every candidate's score per round. ``max_batch`` caps the (layout, trajectory)
     pairs filtered at once.
     """
 

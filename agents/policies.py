@@ -101,7 +101,8 @@ class PlacementTask:
         """The task for a benchmark's dataset in the data home and a cached model checkpoint.
 
         ``config`` sets fields of :class:`~dks_gym.assimilation.AssimilationConfig` and of its filter
-        (``kind``, ``noise_level``, ``n_sensors``, ``noise_seed`` ...). ``train_if_missing=True`` trains a missing model (lite: minutes).
+        (``kind``, ``noise_level``, ``n_sensors``, ``noise_seed`` ...). ``train_if_missing=True`` trains a missing
+        model (lite: minutes).
         """
         from dks_gym.dataset import load_dataset
         from dks_gym.assimilation import tune_if_missing

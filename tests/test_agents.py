@@ -283,7 +283,8 @@ def test_episode_information_is_what_the_filter_learns_about_the_initial_state()
         phi = torch.eye(3, dtype=torch.float64)
         for k in range(1, lin.J.shape[1]):
             dyn = LatentDynamics(lambda z: z, lambda z: torch.zeros(1, 3, dtype=torch.float64),
-                                 forecast_jacobian=lin.F[t, k - 1][None], observe_jacobian=lin.J[t, k][layout // 10][None])
+                                 forecast_jacobian=lin.F[t, k - 1][None],
+                                 observe_jacobian=lin.J[t, k][layout // 10][None])
             state, _ = ekf_forecast(state, dyn, 0.0)
             state, _ = ekf_update(state, torch.zeros(1, 3, dtype=torch.float64), dyn, float(lin.sigma[t]) ** 2)
             phi = lin.F[t, k - 1] @ phi
