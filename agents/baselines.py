@@ -277,8 +277,8 @@ class GreedyLayout(StaticPolicy):
     layout is within (1 - 1/e) of the best one's gain over the prior. Candidates: ``candidates`` or
     :func:`~dks_gym_agents.policies.candidate_lattice` of ``n_candidates`` (default max(32, 2m)) allowed
     cells; trajectories: ``n_trajectories`` spread over the training parameters. ``history`` holds the best
-    objective after each round, ``scores`` every candidate's score per round. ``max_batch`` caps the (layout, trajectory)
-    pairs filtered at once.
+    objective after each round, ``scores`` every candidate's score per round. ``max_batch`` caps the
+    (layout, trajectory) pairs filtered at once.
     """
 
     def __init__(self, objective: str = "error", n_candidates: int | None = None, n_trajectories: int | None = None,
