@@ -3,7 +3,7 @@
 :func:`evaluate_budgets` runs :func:`~dks_gym_agents.evaluate.evaluate_placement` at each budget
 (``out/m<m>``), then writes ``out/budgets.md`` (:func:`~dks_gym_agents.tables.budget_table`) and
 ``out/budgets.png`` (:func:`~dks_gym_agents.figures.budget_figure`). A sweep can be resumed: each budget's
-``placement.json`` is written when that budget is done, and a later call with the same settings keeps it.
+``placement.json.gz`` is written when that budget is done, and a later call with the same settings keeps it.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from dks_gym.evaluation.results import load_results
 from .evaluate import evaluate_placement
 from .figures import budget_figure
 from .policies import PlacementPolicy, PlacementTask
+from .records import PLACEMENT_FILE
 from .registry import DEFAULT_POLICIES, POLICIES, PolicyFactory
 from .scenario import Scenario
 from .tables import budget_table
@@ -38,7 +39,7 @@ def evaluate_budgets(task: PlacementTask, budgets: Sequence[int], scenario: Scen
     Your own policy objects rank beside the named ones: each budget fits a fresh copy of an unfitted one (a
     fitted policy holds one budget's layout and is refused with several budgets).
     ``resume``: keep the budgets an earlier call with the same settings wrote to ``out`` (each budget's
-    ``placement.json`` is written when that budget is done) instead of rerunning them, and show every budget
+    ``placement.json.gz`` is written when that budget is done) instead of rerunning them, and show every budget
     in ``out`` in the table and figure: an interrupted sweep goes on where it stopped, a later call adds budgets.
     """
     budgets = sorted({int(m) for m in budgets})
@@ -55,7 +56,7 @@ def evaluate_budgets(task: PlacementTask, budgets: Sequence[int], scenario: Scen
     docs = {}
     for m in budgets:
         if m in kept:
-            log(f"budget m = {m}: kept {out / f'm{m}' / 'placement.json'}")
+            log(f"budget m = {m}: kept {out / f'm{m}' / PLACEMENT_FILE}")
             continue
         log(f"budget m = {m}")
         at_m = dataclasses.replace(task, config=task.config.replace(n_sensors=m))
@@ -102,9 +103,9 @@ def same_settings(docs: dict[int, dict[str, Any]], out: Path) -> None:
 
 
 def finished_budgets(out: Path, task: PlacementTask, scenario: Scenario) -> dict[int, dict[str, Any]]:
-    """The budgets an earlier sweep finished in ``out`` (``m<m>/placement.json``), checked against each other and
+    """The budgets an earlier sweep finished in ``out`` (``m<m>/placement.json.gz``), checked against each other and
     against this call's benchmark, model, filter, noise and faults."""
-    docs = {int(p.parent.name[1:]): load_results(p) for p in out.glob("m*/placement.json")
+    docs = {int(p.parent.name[1:]): load_results(p) for p in out.glob(f"m*/{PLACEMENT_FILE}")
             if p.parent.name[1:].isdigit()}
     if not docs:
         return {}

@@ -67,7 +67,7 @@ from .sequential import SequentialLayout
 @click.option("--device", default="cpu", show_default=True)
 @click.option("--train-if-missing", is_flag=True, help="Train the latent model when its checkpoint is missing.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
-              help="Folder for placement.json, placement.md and placement_layouts.png.")
+              help="Folder for placement.json.gz, placement.md and placement_layouts.png.")
 def evaluate_placement_command(benchmark: str, policies: str, model: str, filter_: str, preset: str,
                                data_preset: str, n_sensors: int, noise_level: float, noise_seed: int,
                                noise_seeds: int, faults: str, constraint: str, budgets: str | None,

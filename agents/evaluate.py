@@ -10,7 +10,7 @@ judged on the same noise realization, and a cell read by two policies reads the 
 What it takes: the task (:class:`~dks_gym_agents.policies.PlacementTask`: data, model, filter settings,
 sensor budget), the policies (names looked up in a registry, :data:`~dks_gym_agents.registry.POLICIES`, or
 policy objects) and the scenario (:class:`~dks_gym_agents.scenario.Scenario`: noise seeds, faults,
-constraint, SHRED baselines). What it writes to ``out``: ``placement.json`` (:mod:`dks_gym_agents.records`;
+constraint, SHRED baselines). What it writes to ``out``: ``placement.json.gz`` (:mod:`dks_gym_agents.records`;
 with random layouts in the run every record also gets ``paired_vs_random``, :mod:`dks_gym_agents.paired`),
 ``placement.md`` (:func:`~dks_gym_agents.tables.ranked_table`) and ``placement_layouts.png``
 (:func:`~dks_gym_agents.figures.layout_figure`).
@@ -32,7 +32,7 @@ from dks_gym.evaluation.results import save_results
 from .figures import layout_figure
 from .paired import add_paired_vs_random
 from .policies import AdaptivePolicy, PlacementPolicy, PlacementTask, StaticPolicy, constraint_candidates
-from .records import PolicyResult, placement_document
+from .records import PLACEMENT_FILE, PolicyResult, placement_document
 from .registry import DEFAULT_POLICIES, POLICIES, PolicyFactory, make_policies
 from .scenario import Scenario, episodes
 from .scoring import run_adaptive, run_layouts
@@ -152,10 +152,10 @@ def evaluate_placement(
     doc = add_paired_vs_random(doc)
     doc["config"]["skipped_policies"] = skipped
     if out is not None:
-        save_results(doc, out / "placement.json")
+        save_results(doc, out / PLACEMENT_FILE)
         (out / "placement.md").write_text(ranked_table(doc))
         layout_figure(task, results, out / "placement_layouts.png")
-        log(f"wrote {out / 'placement.json'}, {out / 'placement.md'}, {out / 'placement_layouts.png'}")
+        log(f"wrote {out / PLACEMENT_FILE}, {out / 'placement.md'}, {out / 'placement_layouts.png'}")
     return doc, results
 
 

@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from dks_gym.evaluation.figures import save_figure
+
 from .policies import PlacementTask
 from .records import PolicyResult
 from .tables import budget_rows
@@ -73,10 +75,7 @@ def layout_figure(task: PlacementTask, results: Sequence[PolicyResult], path: st
             ax.set_visible(False)
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return path
+    return save_figure(fig, path, dpi=fig.dpi, tight=False)
 
 
 def budget_figure(docs: dict[int, dict[str, Any]], path: str | Path) -> Path:
@@ -110,8 +109,7 @@ def budget_figure(docs: dict[int, dict[str, Any]], path: str | Path) -> Path:
     ax_ratio.set_ylabel("log(MSE / random), paired, ± 2 se")
     ax_mse.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    return Path(path)
+    return save_figure(fig, path, dpi=110, tight=False)
 
 
 __all__ = ["budget_figure", "layout_figure"]

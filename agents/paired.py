@@ -23,7 +23,7 @@ def paired_vs_random(doc: dict[str, Any]) -> dict[str, dict[str, Any]]:
     layouts, i.e. the average paired log ratio against each random layout (the arithmetic mean is pulled up
     by the worst random layouts, so a typical random layout itself scores below 0 against it).
     Negative log ratios beat random. Empty without at least two random layouts. Works on any document
-    from :func:`placement_document` (e.g. a committed ``placement.json``), old ones included.
+    from :func:`placement_document` (e.g. a committed ``placement.json.gz``), old ones included.
     """
     recs = [r for r in doc["records"] if r["experiment"].startswith("placement/")]
     randoms = {r["policy"]: np.asarray(r["per_trajectory_time_mean_mse"], dtype=float)

@@ -1,12 +1,14 @@
 """What a placement run produced: each policy's test-split result, and the results document that stores them.
 
-``placement.json`` is a results document of the ``dks-gym-results`` schema (:mod:`dks_gym.evaluation.results`),
+``placement.json.gz`` is a results document of the ``dks-gym-results`` schema (:mod:`dks_gym.evaluation.results`),
 one record per policy with ``experiment = "placement/<policy>"``, plus the placement fields ``policy``,
 ``adaptive``, ``sensors`` (static layout) or ``sensor_counts`` (adaptive: [cell, reads]),
 ``time_mean_mse_mean``/``_std``, ``per_trajectory_time_mean_mse``, ``fit_seconds`` (fitting here),
 ``offline_seconds`` (the offline cost: fitting plus the training recorded in a loaded agent checkpoint),
 ``decision_seconds`` (wall time per decision: per episode for static layouts, per step and trajectory for
 adaptive ones) and ``policy_config``. A ``placement/forward`` record (no assimilation) is the reference.
+Records keep each trajectory's final and time-averaged MSE and the mean curve over time, not every
+trajectory's curve: no ranking, interval or figure reads those, and they were most of a committed file.
 """
 
 from __future__ import annotations
@@ -25,6 +27,9 @@ from dks_gym.assimilation import AssimilationResult
 from dks_gym.evaluation.results import make_record, new_results
 
 from .policies import PlacementPolicy, PlacementTask
+
+#: The name of a placement run's results document in its output folder (gzip-compressed JSON).
+PLACEMENT_FILE = "placement.json.gz"
 
 
 @dataclass
@@ -47,7 +52,7 @@ class PolicyResult:
 
 
 def _record(pr: PolicyResult) -> dict[str, Any]:
-    rec = make_record(pr.result, experiment=f"placement/{pr.name}", keep_curves=True)
+    rec = make_record(pr.result, experiment=f"placement/{pr.name}", keep_curves=False)
     tm = pr.time_mean_mse
     rec.update(
         policy=pr.name, adaptive=pr.policy.adaptive,
@@ -77,7 +82,7 @@ def placement_document(task: PlacementTask, results: Sequence[PolicyResult], for
     ds, model_preset = task.dataset, task.model_preset
     records = [_record(pr) for pr in results]
     if forward is not None:
-        rec = make_record(forward, experiment="placement/forward", keep_curves=True)
+        rec = make_record(forward, experiment="placement/forward", keep_curves=False)
         tm = forward.step_mse[:, 1:].mean(axis=1)
         rec.update(policy="forward", adaptive=False, sensors=None, time_mean_mse_mean=float(tm.mean()),
                    noise_seeds=[int(s) for s in forward.extras["noise_seeds"]],

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from dks_gym.evaluation.figures import save_figure
+
 
 def _sb3():
     try:
@@ -85,10 +87,7 @@ def save_learning_curve(curve: dict[str, list], path: str | Path, title: str,
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return path
+    return save_figure(fig, path, dpi=fig.dpi, tight=False)
 
 
 def learn_ppo(env: Any, ppo_kwargs: dict[str, Any], timesteps: int, progress: bool) -> tuple[Any, Any]:

@@ -56,7 +56,6 @@ def evaluate_shred(task: PlacementTask, pr: PolicyResult, noise_seeds: Sequence[
         "per_trajectory_final_mse": [float(v) for v in final], "max_forecast_norm": None,
         "da_step_seconds": seconds / (ds.n_frames - 1), "wall_time": shred.fit_seconds + seconds,
         "trajectories": [int(t) for t in index], "params": [float(v) for v in ds.params(cfg.split)[index]],
-        "per_trajectory_step_mse": [[float(v) for v in row] for row in step],
         **{f"final_{n}_mean": None for n in UNCERTAINTY_SCORES},
         "policy": f"shred-{pr.name}", "adaptive": False, "sensors": [int(c) for c in layout],
         "time_mean_mse_mean": float(tm.mean()), "time_mean_mse_std": float(tm.std(ddof=1)) if len(tm) > 1 else None,

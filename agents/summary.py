@@ -1,6 +1,6 @@
 """The placement benchmark's summary: every benchmark and scenario of a benchmark folder in one page.
 
-A benchmark folder holds ``<benchmark>/<scenario>/m<m>/placement.json``, as ``dks-gym evaluate-placement
+A benchmark folder holds ``<benchmark>/<scenario>/m<m>/placement.json.gz``, as ``dks-gym evaluate-placement
 BENCHMARK --budgets ... --out FOLDER/<benchmark>/<scenario>`` writes them (a scenario is a fault setting
 such as ``none`` or ``default``, or a constraint such as ``surface-none``). :func:`write_summary` writes one
 page: the reading (``FOLDER/reading.md``, written by a person), then per benchmark and scenario the
@@ -20,6 +20,7 @@ import numpy as np
 from dks_gym.evaluation.formatting import fixed, markdown_table, sci
 from dks_gym.evaluation.results import load_results
 
+from .records import PLACEMENT_FILE
 from .tables import describe_faults
 
 
@@ -30,11 +31,11 @@ SUMMARY_HEADER = ("m", "best filter policy", "random mean", "SHRED (QR layout)",
 def load_benchmark(folder: str | Path) -> dict[str, dict[str, dict[int, dict[str, Any]]]]:
     """``{benchmark: {scenario: {m: placement document}}}`` of a benchmark folder."""
     out: dict[str, dict[str, dict[int, dict[str, Any]]]] = {}
-    for path in sorted(Path(folder).glob("*/*/m*/placement.json")):
+    for path in sorted(Path(folder).glob(f"*/*/m*/{PLACEMENT_FILE}")):
         m = int(path.parent.name[1:])
         out.setdefault(path.parents[2].name, {}).setdefault(path.parents[1].name, {})[m] = load_results(path)
     if not out:
-        raise FileNotFoundError(f"no <benchmark>/<scenario>/m<m>/placement.json under {folder}")
+        raise FileNotFoundError(f"no <benchmark>/<scenario>/m<m>/placement.json.gz under {folder}")
     # "none" (no faults, every allowed cell) first: the reference the other scenarios are read against
     return {bench: dict(sorted(scenarios.items(), key=lambda item: (item[0] != "none", item[0])))
             for bench, scenarios in out.items()}
@@ -124,9 +125,9 @@ def summary_table(runs: dict[str, dict[str, dict[int, dict[str, Any]]]], figures
     return "\n".join(lines)
 
 
-def write_summary(folder: str | Path, out: str | Path) -> Path:
-    """Write the page ``out``: ``folder/reading.md`` (if any), then the tables and figures of the runs under
-    ``folder``; returns ``out``."""
+def summary_page(folder: str | Path, out: str | Path) -> str:
+    """The page :func:`write_summary` writes to ``out``: ``folder/reading.md`` (if any), then the tables and
+    figures of the runs under ``folder`` (figures linked relative to ``out``)."""
     import os
 
     head = ["# Placement benchmark: every benchmark, scenario and budget", "",
@@ -137,8 +138,13 @@ def write_summary(folder: str | Path, out: str | Path) -> Path:
     if reading.exists():
         head += [reading.read_text().strip(), ""]
     rel = Path(os.path.relpath(folder, out.parent)).as_posix()
-    out.write_text("\n".join(head) + "\n" + summary_table(load_benchmark(folder), figures=rel) + "\n")
-    return out
+    return "\n".join(head) + "\n" + summary_table(load_benchmark(folder), figures=rel) + "\n"
+
+
+def write_summary(folder: str | Path, out: str | Path) -> Path:
+    """Write :func:`summary_page` to ``out``; returns ``out``."""
+    Path(out).write_text(summary_page(folder, out))
+    return Path(out)
 
 
 if __name__ == "__main__":

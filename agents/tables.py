@@ -20,6 +20,7 @@ from dks_gym.evaluation.formatting import cost, fixed, markdown_table, mean_std,
 from dks_gym.evaluation.results import load_results, save_results
 
 from .paired import add_paired_vs_random, paired_vs_random
+from .records import PLACEMENT_FILE
 
 RANKED_HEADER = ("rank", "policy", "time-avg MSE (mean ± std)", "final MSE (mean ± std)",
                  "time-avg / paper, paired (mean ± std)", "better than paper",
@@ -72,7 +73,7 @@ def _ranked_notes(doc: dict[str, Any], paired: dict[str, dict[str, Any]]) -> lis
                      f"(mean ± std over seeds); their own paired log ratios "
                      f"against the other seeds' mean average {signed(float(np.mean(own)))} (the arithmetic mean is "
                      "pulled up by the worst layouts), the bar a policy must clear to beat a typical random layout; "
-                     "placement.json also holds the log ratio against the geometric mean "
+                     "placement.json.gz also holds the log ratio against the geometric mean "
                      "(paired_vs_random.log_ratio_geometric_mean), for which that bar is 0.")
     return notes
 
@@ -99,11 +100,11 @@ def ranked_table(doc: dict[str, Any]) -> str:
 
 
 def rewrite_tables(folder: str | Path) -> Path:
-    """Recompute ``paired_vs_random`` and ``placement.md`` of a finished run from its ``placement.json``
+    """Recompute ``paired_vs_random`` and ``placement.md`` of a finished run from its ``placement.json.gz``
     (no filter runs): ``python -c "from dks_gym_agents.tables import rewrite_tables; rewrite_tables('DIR')"``."""
     folder = Path(folder)
-    doc = add_paired_vs_random(load_results(folder / "placement.json"))
-    save_results(doc, folder / "placement.json")
+    doc = add_paired_vs_random(load_results(folder / PLACEMENT_FILE))
+    save_results(doc, folder / PLACEMENT_FILE)
     (folder / "placement.md").write_text(ranked_table(doc))
     return folder / "placement.md"
 

@@ -408,7 +408,7 @@ def test_evaluate_placement_writes_a_ranked_valid_results_file(burgers_task, tmp
         "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     assert captured["noise_seed"] == 7 and captured["kind"] == "ekf"
-    doc = load_results(tmp_path / "placement.json")
+    doc = load_results(tmp_path / "placement.json.gz")
     recs = {r["policy"]: r for r in doc["records"]}
     assert set(recs) == {"paper", "random-0", "random-1", "qr", "forward"}
     assert recs["qr"]["batch"] == 6 and recs["qr"]["noise_seeds"] == [7, 7, 7, 8, 8, 8]
@@ -455,7 +455,7 @@ def test_budgets_and_faults_through_the_command(burgers_task, tmp_path: Path, mo
     table = (tmp_path / "budgets.md").read_text()
     assert "| d-optimal |" in table and "m = 2" in table and "m = 4" in table and "dropout 0.3" in table
     assert (tmp_path / "budgets.png").stat().st_size > 10_000
-    docs = {m: load_results(tmp_path / f"m{m}" / "placement.json") for m in (2, 4)}
+    docs = {m: load_results(tmp_path / f"m{m}" / "placement.json.gz") for m in (2, 4)}
     for m, doc in docs.items():
         recs = {r["policy"]: r for r in doc["records"]}
         assert len(recs["d-optimal"]["sensors"]) == m
@@ -555,21 +555,21 @@ def test_a_policy_that_cannot_be_fitted_at_a_budget_is_skipped_not_fatal(burgers
 def test_a_resumed_sweep_keeps_finished_budgets_and_refuses_other_settings(burgers_task, tmp_path: Path) -> None:
     """resume=True keeps a budget an earlier sweep finished (its file untouched), runs the others, tables every
     budget of the folder; a folder made with other settings is refused before anything runs."""
-    from dks_gym.evaluation.results import load_results
+    from dks_gym.evaluation.results import load_results, save_results
     from dks_gym_agents.budgets import evaluate_budgets
     from dks_gym_agents.scenario import Scenario
 
     evaluate_budgets(burgers_task, [2], policies="paper", out=tmp_path, log=lambda _: None)
-    first = (tmp_path / "m2" / "placement.json").read_bytes()
+    first = (tmp_path / "m2" / "placement.json.gz").read_bytes()
     said: list[str] = []
     docs = evaluate_budgets(burgers_task, [4], policies="paper", out=tmp_path, resume=True, log=said.append)
-    assert (tmp_path / "m2" / "placement.json").read_bytes() == first
+    assert (tmp_path / "m2" / "placement.json.gz").read_bytes() == first
     assert sorted(docs) == [2, 4] and "m = 2" in (tmp_path / "budgets.md").read_text()
     assert not any("budget m = 2" == line for line in said) and "budget m = 4" in said
     docs = evaluate_budgets(burgers_task, [2, 4], policies="paper", out=tmp_path, resume=True,
                             log=said.append)
     assert [line for line in said if line.startswith("budget m")][-2:] == [
-        f"budget m = {m}: kept {tmp_path / f'm{m}' / 'placement.json'}" for m in (2, 4)]
+        f"budget m = {m}: kept {tmp_path / f'm{m}' / 'placement.json.gz'}" for m in (2, 4)]
     with pytest.raises(ValueError, match="faults differ"):
         evaluate_budgets(burgers_task, [8], Scenario(faults="default"), "paper", out=tmp_path, resume=True)
     assert not (tmp_path / "m8").exists()
@@ -579,9 +579,9 @@ def test_a_resumed_sweep_keeps_finished_budgets_and_refuses_other_settings(burge
     docs = evaluate_budgets(burgers_task, [2, 4], Scenario(faults="default"), "paper", out=tmp_path / "f",
                             resume=True, log=lambda _: None)
     assert sorted(docs) == [2, 4] and "m = 4" in (tmp_path / "f" / "budgets.md").read_text()
-    stale = load_results(tmp_path / "m4" / "placement.json")
+    stale = load_results(tmp_path / "m4" / "placement.json.gz")
     stale["config"]["noise_level"] = 0.5
-    (tmp_path / "m4" / "placement.json").write_text(json.dumps(stale))
+    save_results(stale, tmp_path / "m4" / "placement.json.gz")
     with pytest.raises(ValueError, match="noise_level differ"):
         evaluate_budgets(burgers_task, [8], policies="paper", out=tmp_path, resume=True)
 
@@ -756,7 +756,7 @@ def test_shred_ranks_beside_the_filters(burgers_task: PlacementTask, tmp_path: P
     assert fault_pairs(["none", "default", "wall-none", "wall-default", "surface-default", "greedy-none"]) == [
         ("default", "none"), ("wall-default", "wall-none")]  # a constrained pair too; no partner, no table
     tmp_path = tmp_path / "burgers" / "none"
-    doc = load_results(tmp_path / "m4" / "placement.json")
+    doc = load_results(tmp_path / "m4" / "placement.json.gz")
     rec = next(r for r in doc["records"] if r["policy"] == "shred-paper")
     paper = next(r for r in doc["records"] if r["policy"] == "paper")
     assert rec["model"] == "shred" and rec["filter"] == "none" and rec["sensors"] == paper["sensors"]

@@ -1,7 +1,7 @@
 """How much SHRED's score moves between trainings: the placement benchmark's SHRED rows retrained with other seeds.
 
 Each benchmark cell has one SHRED training (seed 0), with early stopping on a noisy validation loss. This study
-retrains the `shred-qr` row of given runs (``<run>/placement.json``: its layout, noise, faults and test
+retrains the `shred-qr` row of given runs (``<run>/placement.json.gz``: its layout, noise, faults and test
 episodes) with seeds 0..S-1 and scores each on the same episodes, through the harness's own Eq. 18
 (``frame_errors``). Seed 0 must give the committed number again (a reproducibility check from a fresh process);
 the spread over seeds says how far one training's number can be read. Run from the repository root with the
@@ -32,7 +32,7 @@ from dks_gym_agents.shred_baseline import frame_errors
 
 
 def study(run: Path, n_seeds: int) -> dict:
-    doc = load_results(run / "placement.json")
+    doc = load_results(run / "placement.json.gz")
     cfg = doc["config"]
     rec = next(r for r in doc["records"] if r.get("policy") == "shred-qr")
     ds = Dataset(dataset_path(doc["benchmark"], doc["dataset"]["preset"]))
@@ -66,7 +66,7 @@ def study(run: Path, n_seeds: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path, help="folders holding a placement.json with a shred-qr row")
+    parser.add_argument("runs", nargs="+", type=Path, help="folders holding a placement.json.gz with a shred-qr row")
     parser.add_argument("--seeds", type=int, default=3, help="SHRED trainings per run (seeds 0..S-1)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()

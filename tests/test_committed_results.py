@@ -1,0 +1,57 @@
+"""The committed placement results: every table regenerates byte for byte from its committed records, and
+docs/results stays light enough to clone (at most 15 MB: gzip-compressed records, palette PNGs).
+
+The reproduce tables are checked the same way in ``tests/test_evaluation.py``
+(``test_committed_tables_regenerate_byte_for_byte``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from dks_gym_agents.records import PLACEMENT_FILE
+from dks_gym_agents.summary import summary_page
+from dks_gym_agents.tables import budget_table, ranked_table
+
+from dks_gym.evaluation.results import load_results
+
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
+PLACEMENT = RESULTS / "placement"
+MAX_RESULTS_BYTES = 15_000_000
+
+
+def _runs() -> list[Path]:
+    return sorted(PLACEMENT.rglob(PLACEMENT_FILE))
+
+
+def test_every_committed_ranking_regenerates_from_its_records() -> None:
+    runs = _runs()
+    assert len(runs) >= 100  # the placement benchmark's budgets and the single runs
+    stale = [p.parent.relative_to(RESULTS).as_posix() for p in runs
+             if ranked_table(load_results(p)) != (p.parent / "placement.md").read_text()]
+    assert not stale, f"placement.md differs from its records in {stale}"
+
+
+def test_every_committed_budget_table_and_the_summary_regenerate_from_their_records(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    tables = sorted(PLACEMENT.rglob("budgets.md"))
+    assert tables
+    for table in tables:
+        docs = {int(p.parent.name[1:]): load_results(p) for p in table.parent.glob(f"m*/{PLACEMENT_FILE}")}
+        assert budget_table(docs) == table.read_text(), table.relative_to(RESULTS).as_posix()
+    # the page names its own command and links its figures relative to itself: made from the repository root
+    monkeypatch.chdir(RESULTS.parents[1])
+    page = summary_page("docs/results/placement/benchmark", "docs/results/placement/benchmark.md")
+    assert page == (PLACEMENT / "benchmark.md").read_text()
+
+
+def test_no_uncompressed_results_files_are_committed() -> None:
+    plain = [p.relative_to(RESULTS).as_posix() for p in RESULTS.rglob("*.json")
+             if p.name in ("results.json", "placement.json")]
+    assert not plain, f"commit results gzip-compressed (save_results(doc, '...json.gz')): {plain}"
+
+
+def test_the_committed_results_weigh_at_most_15_mb() -> None:
+    total = sum(p.stat().st_size for p in RESULTS.rglob("*") if p.is_file())
+    assert total <= MAX_RESULTS_BYTES, f"docs/results holds {total / 1e6:.1f} MB (at most 15 MB)"
