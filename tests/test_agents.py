@@ -36,6 +36,7 @@ from dks_gym.wrappers import LatentFilter
 sys.path.insert(0, str(Path(__file__).parent))
 from conftest import synthetic_data  # noqa: E402
 
+from tests.pictures import ink  # noqa: E402
 from tests.references.make_references import assert_same_input, load_references  # noqa: E402
 
 CFD = ("cylinder", "dambreak", "sphere")
@@ -417,7 +418,7 @@ def test_evaluate_placement_writes_a_ranked_valid_results_file(burgers_task, tmp
     ranked = [line.split("|")[2].strip() for line in table.splitlines()[2:] if line.startswith("| ") and
               line.split("|")[1].strip().isdigit()]
     assert ranked == sorted(ranked, key=lambda p: recs[p]["time_mean_mse_mean"])
-    assert (tmp_path / "placement_layouts.png").stat().st_size > 10_000
+    assert ink(tmp_path / "placement_layouts.png") > 0.02  # drawn, not a blank page
     assert recs["qr"]["paired_vs_random"]["n_episodes"] == 6 and recs["random-0"]["paired_vs_random"]["n_random"] == 1
     assert "log(MSE / random mean)" in table
 
@@ -454,7 +455,7 @@ def test_budgets_and_faults_through_the_command(burgers_task, tmp_path: Path, mo
     assert result.exit_code == 0, result.output
     table = (tmp_path / "budgets.md").read_text()
     assert "| d-optimal |" in table and "m = 2" in table and "m = 4" in table and "dropout 0.3" in table
-    assert (tmp_path / "budgets.png").stat().st_size > 10_000
+    assert ink(tmp_path / "budgets.png") > 0.02  # drawn, not a blank page
     docs = {m: load_results(tmp_path / f"m{m}" / "placement.json.gz") for m in (2, 4)}
     for m, doc in docs.items():
         recs = {r["policy"]: r for r in doc["records"]}
@@ -726,7 +727,7 @@ def test_m16_layouts_on_cfd_geometries_and_their_figure(bench: str, cfd_tasks_m1
     assert all(len(r["sensors"]) == 16 for r in doc["records"] if r["policy"] != "forward")
     qr = next(r for r in doc["records"] if r["policy"] == "qr")
     assert qr["paired_vs_random"]["n_random"] == 2
-    assert (tmp_path / "placement_layouts.png").stat().st_size > 10_000
+    assert ink(tmp_path / "placement_layouts.png") > 0.02  # drawn, not a blank page
     assert "log(MSE / random mean)" in (tmp_path / "placement.md").read_text()
 
 
