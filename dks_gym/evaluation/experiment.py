@@ -14,6 +14,7 @@ from typing import TypeVar
 
 from ..assimilation import AssimilationResult
 from ..dataset import Dataset
+from .figures import normalized_bar_chart
 from .tabulate import Records
 
 
@@ -60,6 +61,18 @@ class Section:
         return "\n\n".join((f"## {self.title}", *self.body))
 
 
+@dataclass(frozen=True)
+class BarChart:
+    """A figure of the paper's normalized bars (each model's error over the MLP forward run's): the file's
+    name without ``.png``, the panels (title, records, the normalizing record; None for a panel without
+    data), the title and the number of panel columns."""
+
+    name: str
+    panels: tuple[tuple | None, ...]
+    title: str
+    ncols: int | None = None
+
+
 class Experiment:
     """An experiment of the paper's Section IV: override :meth:`runs`, :meth:`tables` and :meth:`figures`.
 
@@ -82,11 +95,22 @@ class Experiment:
         """The experiment's sections of tables.md."""
         return []
 
+    def bar_charts(self, records: Records) -> list[BarChart]:
+        """The experiment's bar charts (drawn by :meth:`figures`)."""
+        return []
+
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
                 dataset: Dataset | None = None) -> list[Path]:
-        """Draw the experiment's figures into ``folder``; ``results`` (by :attr:`Run.cache_key`) and
-        ``dataset`` are the run's own, when it just ran (fields are not in the records)."""
-        return []
+        """Draw the experiment's figures into ``folder``: its :meth:`bar_charts` that have data; override to
+        draw more. ``results`` (by :attr:`Run.cache_key`) and ``dataset`` are the run's own, when it just
+        ran (fields are not in the records)."""
+        written = []
+        for chart in self.bar_charts(records):
+            panels = [p for p in chart.panels if p is not None]
+            if panels:
+                written.append(normalized_bar_chart(panels, folder / f"{chart.name}.png", title=chart.title,
+                                                    ncols=chart.ncols))
+        return written
 
 
 #: The experiments of ``dks-gym reproduce`` by name, in the order they run and print.
@@ -104,4 +128,4 @@ def register(cls: E) -> E:
     return cls
 
 
-__all__ = ["EXPERIMENTS", "Experiment", "Run", "Section", "register"]
+__all__ = ["EXPERIMENTS", "BarChart", "Experiment", "Run", "Section", "register"]

@@ -30,9 +30,8 @@ import numpy as np
 
 from ..assimilation import AssimilationResult
 from ..dataset import Dataset
-from .experiment import Experiment, Run, Section, register
-from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart, reconstruction_figure, temporal_error_figure
-from .figures import timing_figure
+from .experiment import BarChart, Experiment, Run, Section, register
+from .figures import MODEL_LABELS, MODEL_ORDER, reconstruction_figure, temporal_error_figure, timing_figure
 from .formatting import MISSING, fixed, sci, sig
 from .paper import PAPER_DERIVED, PAPER_ENSEMBLE, PAPER_MULTISTEP, PAPER_OPERATOR_NORM
 from .results import Record
@@ -50,12 +49,6 @@ def _panel(records: Records, title: str, base_criteria: dict[str, Any], **criter
     base = records.base(**base_criteria)
     recs = [rec for m in MODELS if (rec := records.find(model=m, **criteria)) is not None]
     return (title, recs, base) if base is not None and recs and base["final_mse_mean"] else None
-
-
-def _bars(path: Path, panels: list[tuple | None], title: str, ncols: int | None = None) -> list[Path]:
-    """A normalized bar chart of the panels that have data (none: no figure)."""
-    panels = [p for p in panels if p is not None]
-    return [normalized_bar_chart(panels, path, title=title, ncols=ncols)] if panels else []
 
 
 def _scenario(**changes: Any) -> dict[str, Any]:
@@ -155,15 +148,21 @@ class Main(Experiment):
             "different units compare), mean over the test trajectories; the last column is the Eq. 18 MSE in "
             "physical units, as in the tables above.", tabulate(rows, columns)))]
 
-    def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Dataset | None = None) -> list[Path]:
-        cfg, written = records.config, []
+    def bar_charts(self, records: Records) -> list[BarChart]:
+        charts = []
         for initial in ("approximate", "exact"):
             crit = {"experiment": "main", "initial": initial}
-            written += _bars(folder / f"main_{initial}.png",
-                             [_panel(records, "(a) forward run", crit, filter="forward", **crit),
-                              _panel(records, "(b) EKF", crit, filter="ekf", **crit)],
-                             f"{records.benchmark}: {initial} initial condition, r=32, 20% noise")
+            panels = (_panel(records, "(a) forward run", crit, filter="forward", **crit),
+                      _panel(records, "(b) EKF", crit, filter="ekf", **crit))
+            charts.append(BarChart(f"main_{initial}", panels,
+                                   f"{records.benchmark}: {initial} initial condition, r=32, 20% noise"))
+        return charts
+
+    def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
+                dataset: Dataset | None = None) -> list[Path]:
+        cfg, written = records.config, super().figures(records, folder)
+        for initial in ("approximate", "exact"):
+            crit = {"experiment": "main", "initial": initial}
             rows = [(name, [rec for m in MODELS if (rec := records.find(model=m, filter=f, **crit)) is not None])
                     for f, name in (("forward", "forward run"), ("ekf", "EKF"))]
             time_axis = cfg["t0"] + cfg["dt"] * np.arange(cfg["n_frames"]) if "dt" in cfg else None
@@ -222,13 +221,11 @@ class EnKF(Experiment):
                    Column("paper filtered", lambda r: paper_mse(bench, r["model"], r["filter"]))]
         return [Section("EnKF, n = 20 (Table VII)", (tabulate(rows, columns),))]
 
-    def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Dataset | None = None) -> list[Path]:
+    def bar_charts(self, records: Records) -> list[BarChart]:
         crit = {"experiment": "enkf"}
-        return _bars(folder / "enkf.png", [_panel(records, "(a) forward run", crit, filter="forward", **crit),
-                                           _panel(records, "(b) EnKF n=20", crit, filter="enkf", n_members=20,
-                                                  **crit)],
-                     f"{records.benchmark}: EnKF, approximate initial condition")
+        return [BarChart("enkf", (_panel(records, "(a) forward run", crit, filter="forward", **crit),
+                                  _panel(records, "(b) EnKF n=20", crit, filter="enkf", n_members=20, **crit)),
+                         f"{records.benchmark}: EnKF, approximate initial condition")]
 
 
 @register
@@ -327,12 +324,11 @@ class Ensemble(Experiment):
                 "5, 10 and the last, mean over the test trajectories (a collapsed ensemble has a spread near 0 and "
                 "a gain near 0: it stops reading the sensors).", tabulate(rows, columns)]
 
-    def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Dataset | None = None) -> list[Path]:
+    def bar_charts(self, records: Records) -> list[BarChart]:
         crit = {"experiment": "ensemble"}
-        return _bars(folder / "ensemble.png",
-                     [_panel(records, f"EnKF n={n}", crit, filter="enkf", n_members=n, **crit) for n in self.SIZES],
-                     f"{records.benchmark}: EnKF ensemble size (÷ MLP forward run)")
+        return [BarChart("ensemble", tuple(_panel(records, f"EnKF n={n}", crit, filter="enkf", n_members=n, **crit)
+                                           for n in self.SIZES),
+                         f"{records.benchmark}: EnKF ensemble size (÷ MLP forward run)")]
 
 
 # noise, latent, multistep: one thing of the default scenario varied --------------------------------------------
@@ -353,11 +349,10 @@ class Noise(Experiment):
         return [Section("Measurement noise (Fig. 10): EKF final MSE (÷ MLP forward run)",
                         (tabulate([{"model": m} for m in MODELS], columns),))]
 
-    def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Dataset | None = None) -> list[Path]:
-        return _bars(folder / "noise.png", [_panel(records, f"EKF, {int(100 * s)}% noise", _scenario(noise=s),
-                                                   filter="ekf", **_scenario(noise=s)) for s in (0.1, 0.3)],
-                     f"{records.benchmark}: measurement noise")
+    def bar_charts(self, records: Records) -> list[BarChart]:
+        return [BarChart("noise", tuple(_panel(records, f"EKF, {int(100 * s)}% noise", _scenario(noise=s),
+                                               filter="ekf", **_scenario(noise=s)) for s in (0.1, 0.3)),
+                         f"{records.benchmark}: measurement noise")]
 
 
 def _varied_rows(records: Records, name: str, values: tuple, models: tuple[str, ...]) -> list[Row]:
@@ -387,11 +382,10 @@ class Latent(Experiment):
         return [Section("Latent dimension (Fig. 11)",
                         (tabulate(_varied_rows(records, "r", (16, 32, 64), MODELS), columns),))]
 
-    def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Dataset | None = None) -> list[Path]:
-        return _bars(folder / "latent.png", [_panel(records, f"EKF, r={r}", _scenario(r=r), filter="ekf",
-                                                    **_scenario(r=r)) for r in (16, 64)],
-                     f"{records.benchmark}: latent dimension (each panel ÷ MLP forward run at its r)")
+    def bar_charts(self, records: Records) -> list[BarChart]:
+        return [BarChart("latent", tuple(_panel(records, f"EKF, r={r}", _scenario(r=r), filter="ekf",
+                                                **_scenario(r=r)) for r in (16, 64)),
+                         f"{records.benchmark}: latent dimension (each panel ÷ MLP forward run at its r)")]
 
 
 @register
@@ -413,12 +407,11 @@ class Multistep(Experiment):
         return [Section("Multi-step training (Fig. 13)",
                         (tabulate(_varied_rows(records, "T", (1, 2, 4, 8), ("koopman", "mlp")), columns),))]
 
-    def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
-                dataset: Dataset | None = None) -> list[Path]:
-        panels = [_panel(records, f"T={t}: {name}", _scenario(T=t), filter=f, **_scenario(T=t))
-                  for t in (2, 4, 8) for f, name in (("forward", "forward run"), ("ekf", "EKF"))]
-        return _bars(folder / "multistep.png", panels,
-                     f"{records.benchmark}: multi-step training (each panel ÷ MLP forward run at its T)", ncols=2)
+    def bar_charts(self, records: Records) -> list[BarChart]:
+        panels = tuple(_panel(records, f"T={t}: {name}", _scenario(T=t), filter=f, **_scenario(T=t))
+                       for t in (2, 4, 8) for f, name in (("forward", "forward run"), ("ekf", "EKF")))
+        return [BarChart("multistep", panels,
+                         f"{records.benchmark}: multi-step training (each panel ÷ MLP forward run at its T)", ncols=2)]
 
 
 # operator norm, timing -----------------------------------------------------------------------------------------
