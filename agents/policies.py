@@ -52,6 +52,7 @@ import numpy as np
 from dks_gym.benchmarks import Benchmark
 from dks_gym.benchmarks.layout import surface_mask
 from dks_gym.dataset import Dataset
+from dks_gym.models import FilterableModel
 from dks_gym.assimilation import AssimilationConfig
 
 
@@ -66,7 +67,7 @@ class PlacementTask:
     """
 
     dataset: Dataset
-    model: Any
+    model: FilterableModel
     config: AssimilationConfig = field(default_factory=AssimilationConfig)
     candidates: np.ndarray | None = None
     seed: int = 0

@@ -24,7 +24,7 @@ from dks_gym.assimilation import AssimilationConfig, AssimilationResult, run_dat
 from dks_gym.dataset import Dataset
 from dks_gym.envs.noise import noise_sigma
 from dks_gym.filters import GaussianState, LatentDynamics, as_covariance, ekf_forecast, ekf_update
-from dks_gym.models import model_device
+from dks_gym.models import FilterableModel, model_device
 
 
 def _episode_seeds(config: AssimilationConfig, n: int, noise_seeds: Any) -> np.ndarray:
@@ -35,7 +35,7 @@ def _episode_seeds(config: AssimilationConfig, n: int, noise_seeds: Any) -> np.n
     return seeds
 
 
-def run_layouts(model: Any, dataset: Dataset, layouts: np.ndarray, trajectories: np.ndarray,
+def run_layouts(model: FilterableModel, dataset: Dataset, layouts: np.ndarray, trajectories: np.ndarray,
                 config: AssimilationConfig, *, split: str | None = None, noise_seeds: np.ndarray | None = None,
                 dtype: torch.dtype = torch.float32) -> AssimilationResult:
     """Filter B (layout, trajectory) pairs of ``split`` (default ``config.split``) as one batch.
@@ -63,7 +63,8 @@ def run_layouts(model: Any, dataset: Dataset, layouts: np.ndarray, trajectories:
     return result
 
 
-def forward_reference(model: Any, dataset: Dataset, config: AssimilationConfig, split: str = "train") -> np.ndarray:
+def forward_reference(model: FilterableModel, dataset: Dataset, config: AssimilationConfig,
+                      split: str = "train") -> np.ndarray:
     """Per trajectory of ``split``, the forward run's (no assimilation) MSE averaged over frames 1..n_t-1, (n,).
 
     The sensors do not matter for a forward run, so this is the scale the learned policies' rewards are
@@ -77,8 +78,9 @@ def forward_reference(model: Any, dataset: Dataset, config: AssimilationConfig, 
     return result.step_mse[:, 1:].mean(axis=1)
 
 
-def run_adaptive(model: Any, dataset: Dataset, decide: Callable[[np.ndarray], np.ndarray], candidates: np.ndarray,
-                 trajectories: np.ndarray, config: AssimilationConfig, *, noise_seeds: np.ndarray | None = None,
+def run_adaptive(model: FilterableModel, dataset: Dataset, decide: Callable[[np.ndarray], np.ndarray],
+                 candidates: np.ndarray, trajectories: np.ndarray, config: AssimilationConfig, *,
+                 noise_seeds: np.ndarray | None = None,
                  dtype: torch.dtype = torch.float32) -> AssimilationResult:
     """Filter the trajectories of ``config.split`` with a layout per step: ``decide(belief (B, 2r)) -> (B, m)``.
 
@@ -95,7 +97,7 @@ def run_adaptive(model: Any, dataset: Dataset, decide: Callable[[np.ndarray], np
     return result
 
 
-def decoder_jacobians(model: Any, z: torch.Tensor, mu: torch.Tensor, cells: np.ndarray, channel: str,
+def decoder_jacobians(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor, cells: np.ndarray, channel: str,
                       scored: tuple[int, ...], chunk: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Jacobians of the decoder at each latent state, detached, as (J, M):
 
@@ -128,7 +130,7 @@ class LinearizedTrajectories:
     main cost).
     """
 
-    def __init__(self, model: Any, dataset: Dataset, trajectories: np.ndarray, cells: np.ndarray,
+    def __init__(self, model: FilterableModel, dataset: Dataset, trajectories: np.ndarray, cells: np.ndarray,
                  config: AssimilationConfig, *, split: str = "train", dtype: torch.dtype = torch.float64) -> None:
         bench = dataset.benchmark
         device = model_device(model)
@@ -158,7 +160,7 @@ class LinearizedTrajectories:
 _LAST_LINEARIZED: list[tuple[tuple, LinearizedTrajectories]] = []  # one slot: a budget sweep reuses its lattice
 
 
-def linearized(model: Any, dataset: Dataset, trajectories: np.ndarray, cells: np.ndarray,
+def linearized(model: FilterableModel, dataset: Dataset, trajectories: np.ndarray, cells: np.ndarray,
                config: AssimilationConfig) -> LinearizedTrajectories:
     """:class:`LinearizedTrajectories` of these arguments, the last one built reused when they match (the
     greedy policies of a budget sweep or of several fault scenarios share one candidate lattice; only the

@@ -33,6 +33,7 @@ import torch
 
 from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
+from ..models import FilterableModel
 from .config import AssimilationConfig
 from .core import Assimilation, field_errors
 
@@ -228,7 +229,7 @@ class _SensorReadings:
 
 
 def run_episodes(
-    model: Any,
+    model: FilterableModel,
     envs: Sequence[SensingEnv],
     config: AssimilationConfig,
     *,
@@ -279,8 +280,8 @@ def run_episodes(
     return _result(model, config, envs, core, snap, step_mse, scores, source.extras(), start)
 
 
-def _result(model: Any, config: AssimilationConfig, envs: Sequence[SensingEnv], core: Assimilation, snap: Any,
-            step_mse: np.ndarray, scores: dict[str, np.ndarray], extras: dict[str, Any],
+def _result(model: FilterableModel, config: AssimilationConfig, envs: Sequence[SensingEnv], core: Assimilation,
+            snap: Any, step_mse: np.ndarray, scores: dict[str, np.ndarray], extras: dict[str, Any],
             start: float) -> AssimilationResult:
     """The :class:`AssimilationResult` of a finished loop: the records, the final fields and their errors."""
     history = core.history()
@@ -310,7 +311,7 @@ def _open(dataset: Dataset | str | Path) -> Dataset:
 
 
 def run_assimilation(
-    model: Any,
+    model: FilterableModel,
     dataset: Dataset | str | Path,
     config: AssimilationConfig | None = None,
     *,
@@ -349,7 +350,7 @@ def run_assimilation(
                        reconstruction_var=reconstruction_var, n_sensors=config.n_sensors)
 
 
-def run_dataset(model: Any, dataset: Dataset, trajectories: np.ndarray, noise_seeds: np.ndarray,
+def run_dataset(model: FilterableModel, dataset: Dataset, trajectories: np.ndarray, noise_seeds: np.ndarray,
                 config: AssimilationConfig, *, split: str | None = None, share: bool = False,
                 layouts: np.ndarray | None = None, decide: Callable[[np.ndarray], np.ndarray] | None = None,
                 dtype: torch.dtype = torch.float32, progress: bool = False, description: str | None = None,

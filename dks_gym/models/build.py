@@ -12,6 +12,7 @@ from typing import Any, Callable, Sequence
 import torch
 from torch import nn
 
+from ..dataset import Dataset
 from .koopman import KoopmanOperator
 from .latent_model import ArrayLike, KoopmanModel, LatentModel, NeuralLatentModel
 from .mlp import MLPTransition
@@ -47,7 +48,7 @@ def build_model(
     r: int = 32,
     preset: str = "paper",
     *,
-    dataset: Any = None,
+    dataset: Dataset | None = None,
     dt: float | None = None,
     stats_mean: ArrayLike | None = None,
     stats_std: ArrayLike | None = None,

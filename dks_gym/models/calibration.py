@@ -9,11 +9,11 @@ of Q on the same trajectories.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 import torch
 
+from ..dataset import Dataset
 from .latent_model import LatentModel
 
 
@@ -28,7 +28,7 @@ def _definite(cov: torch.Tensor, floor: float = 1e-6) -> torch.Tensor:
 
 
 @torch.no_grad()
-def calibrate(model: LatentModel, dataset: Any, trajectories: Sequence[int], split: str = "train",
+def calibrate(model: LatentModel, dataset: Dataset, trajectories: Sequence[int], split: str = "train",
               chunk: int = 16) -> dict[str, torch.Tensor]:
     """What the filters need to know about a model's own errors, measured on ``trajectories`` of ``split``.
 

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..dataset import Dataset
 from ..atomic import atomic_path
 from ..home import data_home, ensure_writable
 from ..locks import file_lock
@@ -108,7 +109,7 @@ def train_command(benchmark: str, model: str, preset: str, r: int, T: int, data_
 
 
 # Dataset identity ------------------------------------------------------------------------------------
-def dataset_identity(dataset: Any) -> dict[str, Any]:
+def dataset_identity(dataset: Dataset) -> dict[str, Any]:
     """Path, preset, ``created`` attribute and content fingerprint of a :class:`dks_gym.dataset.Dataset`."""
     h = hashlib.sha256()
     h.update(dataset.benchmark.name.encode())
@@ -123,13 +124,13 @@ def dataset_identity(dataset: Any) -> dict[str, Any]:
     }
 
 
-def _created(dataset: Any) -> str | None:
+def _created(dataset: Dataset) -> str | None:
     created = getattr(dataset, "created", None)
     return None if created is None else str(created)
 
 
 # Metadata --------------------------------------------------------------------------------------------
-def build_metadata(model: LatentModel, *, preset: str, T: int, dataset: Any, **training: Any) -> dict[str, Any]:
+def build_metadata(model: LatentModel, *, preset: str, T: int, dataset: Dataset, **training: Any) -> dict[str, Any]:
     """Metadata of a checkpoint of ``model`` trained on ``dataset``; ``training`` adds steps, batch, lr, seed."""
     from ..version import __version__
 
@@ -160,7 +161,7 @@ def check_metadata(
     r: int | None = None,
     preset: str | None = None,
     T: int | None = None,
-    dataset: Any = None,
+    dataset: Dataset | None = None,
 ) -> None:
     """Refuse (ValueError) a checkpoint whose benchmark, model, r, preset, T or dataset differ from the request."""
     if metadata.get("format") != FORMAT:

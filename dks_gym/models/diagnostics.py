@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Any
 
 import torch
 
+from ..dataset import Dataset
 from .latent_model import LatentModel
 from .windows import WindowSampler
 
 
 @torch.no_grad()
 def one_step_error(
-    model: LatentModel, dataset: Any, split: str = "train", *, max_pairs: int = 2048, batch_size: int = 128,
+    model: LatentModel, dataset: Dataset, split: str = "train", *, max_pairs: int = 2048, batch_size: int = 128,
     seed: int = 0,
 ) -> dict[str, float]:
     """Mean squared one-step error of decode(forecast(encode(x_k))) against x_{k+1}, and of persistence.

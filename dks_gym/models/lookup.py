@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from ..dataset import Dataset
 from .checkpoint import (
     CheckpointMissing,
     check_metadata,
@@ -51,8 +52,9 @@ class ModelLookup:
     stale: bool  # the user's checkpoint exists but was trained with another schedule
 
 
-def locate_model(benchmark: Any, model: str, r: int = 32, preset: str = "lite", T: int = 1, *, dataset: Any = None,
-                 data_preset: str = "paper", path: Path | str | None = None) -> ModelLookup:
+def locate_model(benchmark: Any, model: str, r: int = 32, preset: str = "lite", T: int = 1, *,
+                 dataset: Dataset | None = None, data_preset: str = "paper",
+                 path: Path | str | None = None) -> ModelLookup:
     """The lookup of :func:`load_model`, without loading or training: the user's own complete checkpoint
     (``path``, or the data home's), else the shipped model when ``dataset`` matches its training data.
     Raises ValueError for a checkpoint of another benchmark, r, preset, T or dataset."""
@@ -96,7 +98,7 @@ def load_model(
     preset: str = "lite",
     T: int = 1,
     *,
-    dataset: Any = None,
+    dataset: Dataset | None = None,
     data_preset: str = "paper",
     train_if_missing: bool = False,
     device: str | torch.device = "cpu",

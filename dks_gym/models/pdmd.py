@@ -56,6 +56,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from ..dataset import Dataset
 from .latent_model import ArrayLike, LatentModel
 from .presets import BenchmarkShape
 
@@ -315,7 +316,7 @@ class PDMD(LatentModel):
         self.fit_info["dmd_condition_number"] = self.dmd_condition_number
         return self
 
-    def fit_dataset(self, dataset: Any, **kwargs: Any) -> "PDMD":
+    def fit_dataset(self, dataset: Dataset, **kwargs: Any) -> "PDMD":
         """Fit on the train split of a :class:`dks_gym.dataset.Dataset` (read one trajectory at a time)."""
         return self.fit(dataset.fields("train"), dataset.params("train"), **kwargs)
 

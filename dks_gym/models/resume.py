@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from ..dataset import Dataset
 from .checkpoint import check_metadata, read_checkpoint, save_checkpoint
 from .latent_model import NeuralLatentModel
 from .validation import ValidationMonitor
@@ -60,7 +61,7 @@ class TrainingState:
 
 
 def check_resumable(meta: dict[str, Any], path: Path, name: str, model: str, preset: str, r: int, T: int,
-                    dataset: Any, settings: dict[str, Any]) -> None:
+                    dataset: Dataset, settings: dict[str, Any]) -> None:
     """Refuse (ValueError) to resume the checkpoint with metadata ``meta`` for another model or dataset, or with
     other ``settings`` (batch size, lr, seed, schedule) than it was trained with."""
     check_metadata(meta, path, benchmark=name, model=model, r=r, preset=preset, T=T, dataset=dataset)

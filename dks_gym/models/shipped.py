@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from ..dataset import Dataset
 from ..atomic import atomic_path
 from .checkpoint import checkpoint_name, read_checkpoint
 
@@ -54,7 +55,7 @@ MAX_TOTAL_BYTES = 30 * 1024 * 1024
 _DROPPED = ("saved",)
 
 
-def data_fingerprint(dataset: Any) -> dict[str, Any]:
+def data_fingerprint(dataset: Dataset) -> dict[str, Any]:
     """What identifies the data a model was trained on, machine-independently (see the module docstring)."""
     params = np.ascontiguousarray(dataset.params("train"), dtype="<f8")
     generator = dict(getattr(dataset, "generator", None) or {})
@@ -105,7 +106,7 @@ class ShippedModel:
     def fingerprint(self) -> dict[str, Any]:
         return self.metadata["data"]
 
-    def differences(self, dataset: Any) -> list[str]:
+    def differences(self, dataset: Dataset) -> list[str]:
         """What differs between the data this model was trained on and ``dataset`` (empty: it may be used)."""
         return fingerprint_differences(self.fingerprint, data_fingerprint(dataset))
 
@@ -138,7 +139,7 @@ def list_shipped(weights_dir: Path | None = None) -> list[ShippedModel]:
     return [ShippedModel(p, read_metadata(p)) for p in sorted(folder.glob("*.safetensors"))]
 
 
-def export_model(checkpoint: Path | str, dataset: Any, out_dir: Path | str | None = None) -> Path:
+def export_model(checkpoint: Path | str, dataset: Dataset, out_dir: Path | str | None = None) -> Path:
     """Write the inference-only file of a trained ``checkpoint`` into ``out_dir`` (default: the package's
     weights folder), with the fingerprint of ``dataset``, which must be the data it was trained on."""
     from safetensors.torch import save_file

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numbers
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 
+from ..dataset import Dataset
 from .latent_model import LatentModel
 from .presets import MODEL_KINDS, MODEL_PRESETS
 from .lookup import load_model
@@ -45,7 +45,7 @@ class ModelSpec:
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
 
-    def load(self, benchmark: str, dataset: Any = None) -> LatentModel:
+    def load(self, benchmark: str, dataset: Dataset | None = None) -> LatentModel:
         """The model this spec names for ``benchmark``, trained on ``dataset`` (see :func:`load_model`)."""
         return load_model(benchmark, self.kind, r=self.r, preset=self.preset, T=self.T, dataset=dataset,
                           device=self.device, train_if_missing=self.train_if_missing)

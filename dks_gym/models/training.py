@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..dataset import Dataset
 from ..locks import file_lock
 from ..threads import torch_threads
 from .build import build_model
@@ -83,7 +84,7 @@ class TrainingPlan:
     r: int
     preset: str
     T: int
-    dataset: Any
+    dataset: Dataset
     path: Path  # the checkpoint
     schedule: TrainingSchedule  # resolved: its step count fixed (epochs applied)
     seed: int
@@ -203,7 +204,7 @@ def train_model(
     preset: str = "lite",
     T: int = 1,
     *,
-    dataset: Any = None,
+    dataset: Dataset | None = None,
     data_preset: str = "paper",
     schedule: TrainingSchedule | None = None,
     seed: int = 0,
@@ -259,7 +260,7 @@ def train_model(
         return finish_training(run, done, start_time)
 
 
-def plan_training(name: str, model: str, r: int, preset: str, T: int, *, dataset: Any, path: Path,
+def plan_training(name: str, model: str, r: int, preset: str, T: int, *, dataset: Dataset, path: Path,
                   schedule: TrainingSchedule | None, seed: int, device: torch.device,
                   checkpoint_every: int | None) -> TrainingPlan:
     """The plan of a run: the schedule (the preset's unless given) checked and resolved for the training
@@ -328,7 +329,7 @@ def _load_finished(plan: TrainingPlan, previous: dict[str, Any], start_time: flo
                           stopped_early=bool(previous.get("stopped_early")))
 
 
-def _fit_pdmd(name: str, r: int, dataset: Any, path: Path, seed: int, device: torch.device, resume: bool,
+def _fit_pdmd(name: str, r: int, dataset: Dataset, path: Path, seed: int, device: torch.device, resume: bool,
               start_time: float) -> TrainingResult:
     """pDMD's "training": its closed-form fit on every training trajectory (or the fitted checkpoint, loaded)."""
     if resume and path.exists():

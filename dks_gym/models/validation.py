@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 import torch
 
+from ..dataset import Dataset
 from .latent_model import NeuralLatentModel
 from .loss import training_loss
 from .windows import WindowSampler
@@ -39,7 +39,7 @@ class ValidationMonitor:
     replayed on resume, so a resumed run stops where an uninterrupted one would.
     """
 
-    def __init__(self, dataset: Any, trajectories: Sequence[int], horizon: int, *, eval_every: int, patience: int,
+    def __init__(self, dataset: Dataset, trajectories: Sequence[int], horizon: int, *, eval_every: int, patience: int,
                  batch_size: int, max_windows: int = 256, seed: int = 0) -> None:
         self.sampler = WindowSampler(dataset, horizon, seed=seed, trajectories=trajectories)
         self.trajectories = [int(i) for i in trajectories]

@@ -9,10 +9,11 @@ memory), otherwise every window is read from the HDF5 file (sphere, paper preset
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 import torch
+
+from ..dataset import Dataset
 
 
 def _available_memory() -> int | None:
@@ -36,7 +37,7 @@ class WindowSampler:
     """
 
     def __init__(
-        self, dataset: Any, horizon: int = 1, *, seed: int = 0, split: str = "train",
+        self, dataset: Dataset, horizon: int = 1, *, seed: int = 0, split: str = "train",
         in_memory: bool | None = None, progress: bool = False, trajectories: Sequence[int] | None = None,
     ) -> None:
         self.dataset, self.split = dataset, split
