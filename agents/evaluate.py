@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from dks_gym.assimilation import AssimilationResult
+from dks_gym.evaluation.conformance import stamp_protocol
 from dks_gym.evaluation.results import save_results
 
 from .figures import layout_figure
@@ -151,6 +152,7 @@ def evaluate_placement(
     doc["records"].extend(estimators)
     doc = add_paired_vs_random(doc)
     doc["config"]["skipped_policies"] = skipped
+    stamp_protocol(doc)  # again: the SHRED records joined after placement_document marked its own
     if out is not None:
         save_results(doc, out / PLACEMENT_FILE)
         (out / "placement.md").write_text(ranked_table(doc))

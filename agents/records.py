@@ -9,6 +9,7 @@ one record per policy with ``experiment = "placement/<policy>"``, plus the place
 adaptive ones) and ``policy_config``. A ``placement/forward`` record (no assimilation) is the reference.
 Records keep each trajectory's final and time-averaged MSE and the mean curve over time, not every
 trajectory's curve: no ranking, interval or figure reads those, and they were most of a committed file.
+The document names the benchmark's protocol (:func:`~dks_gym.evaluation.conformance.stamp_protocol`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy as np
 import torch
 
 from dks_gym.assimilation import AssimilationResult
+from dks_gym.evaluation.conformance import stamp_protocol
 from dks_gym.evaluation.results import make_record, new_results
 
 from .policies import PlacementPolicy, PlacementTask
@@ -75,7 +77,7 @@ def _record(pr: PolicyResult) -> dict[str, Any]:
 
 def placement_document(task: PlacementTask, results: Sequence[PolicyResult], forward: AssimilationResult | None,
                        *, wall_time: float) -> dict[str, Any]:
-    """The results document (``dks-gym-results`` schema) of one harness run."""
+    """The results document (``dks-gym-results`` schema) of one harness run, naming its protocol."""
     from dks_gym.version import __version__
     from dks_gym.models.checkpoint import dataset_identity
 
@@ -100,8 +102,8 @@ def placement_document(task: PlacementTask, results: Sequence[PolicyResult], for
                   n_allowed_cells=int(len(task.allowed_cells)), constrained=task.candidates is not None,
                   created=datetime.now(timezone.utc).isoformat(timespec="seconds"), wall_time_s=wall_time,
                   dks_gym_version=__version__, torch_version=torch.__version__, python=platform.python_version())
-    return new_results(ds.benchmark.name, model_preset, dataset_identity(ds), config, records,
-                       [{"model": task.model.kind, "r": int(task.model.r), "preset": model_preset}])
+    return stamp_protocol(new_results(ds.benchmark.name, model_preset, dataset_identity(ds), config, records,
+                                      [{"model": task.model.kind, "r": int(task.model.r), "preset": model_preset}]))
 
 
 __all__ = ["PolicyResult", "placement_document"]

@@ -553,6 +553,17 @@ def test_a_policy_that_cannot_be_fitted_at_a_budget_is_skipped_not_fatal(burgers
         evaluate_placement(burgers_task, ["paper", TooGreedy()], log=lambda _: None)
 
 
+def test_a_placement_document_names_its_protocol(burgers_task) -> None:
+    """The harness stamps the benchmark's protocol: the small data is the run's one deviation, and no record
+    leaves it (the policy's layout is what a placement run compares, not a deviation)."""
+    from dks_gym_agents.evaluate import evaluate_placement
+
+    doc, _ = evaluate_placement(burgers_task, ["paper", "random"], log=lambda _: None)
+    assert (doc["protocol"]["name"], doc["protocol"]["version"]) == ("dks-v1", 1)
+    assert doc["protocol"]["deviations"] == {"data_preset": "small"}
+    assert not any("protocol_deviations" in r for r in doc["records"])
+
+
 def test_a_resumed_sweep_keeps_finished_budgets_and_refuses_other_settings(burgers_task, tmp_path: Path) -> None:
     """resume=True keeps a budget an earlier sweep finished (its file untouched), runs the others, tables every
     budget of the folder; a folder made with other settings is refused before anything runs."""

@@ -299,6 +299,15 @@ def test_reproduce_reruns_merge_and_compare_prints_ratios(reproduced, models) ->
     assert result.exit_code == 0 and result.output.count(" 1 ") >= 16
 
 
+def test_reproduce_names_its_protocol_and_marks_the_records_that_leave_it(reproduced) -> None:
+    doc = load_results(reproduced[0] / "results.json.gz")
+    assert (doc["protocol"]["name"], doc["protocol"]["version"]) == ("dks-v1", 1)
+    assert doc["protocol"]["deviations"] == {"data_preset": "small"}  # the small data; the rest as prescribed
+    exact = [r for r in doc["records"] if r["initial"] == "exact"]
+    assert exact and all(r["protocol_deviations"] == ["initial"] for r in exact)
+    assert all("protocol_deviations" not in r for r in doc["records"] if r["initial"] == "approximate")
+
+
 def test_koopman_ekf_beats_its_forward_run_after_short_training(reproduced) -> None:
     """Paper Section IV: assimilation lowers the error of the linear Koopman model (here 150 lite steps)."""
     doc = load_results(reproduced[0] / "results.json.gz")

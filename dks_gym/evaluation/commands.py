@@ -66,14 +66,20 @@ def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None
 @click.argument("a", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.argument("b", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--experiment", default=None, help="Only the records of this experiment.")
-def compare_command(a: Path, b: Path, experiment: str | None) -> None:
-    """Print the ratios B / A of final MSE, operator norm and DA-step time for the runs in both results files."""
+@click.option("--force", is_flag=True,
+              help="Compare files made under different protocol settings (refused otherwise, naming the fields).")
+def compare_command(a: Path, b: Path, experiment: str | None, force: bool) -> None:
+    """Print the ratios B / A of final MSE, operator norm and DA-step time for the runs in both results files.
+
+    Both files must name the same protocol (name, version, fields) and share its run settings (budget, seeds,
+    faults, ...): otherwise the command stops and says which fields differ, unless --force.
+    """
     from .comparison import compare, format_comparison
     from .results import ResultsError, load_results
 
     try:
         doc_a, doc_b = load_results(a), load_results(b)
-        rows = compare(doc_a, doc_b)
+        rows = compare(doc_a, doc_b, force=force)
     except ResultsError as exc:
         raise click.ClickException(str(exc)) from exc
     if experiment is not None:

@@ -1,9 +1,14 @@
-"""``dks-gym compare``: the records of two results files paired by their key, with the ratios B / A."""
+"""``dks-gym compare``: the records of two results files paired by their key, with the ratios B / A.
+
+Two files compare only when they were made under the same protocol settings
+(:func:`~dks_gym.evaluation.conformance.protocol_differences`); ``force`` compares them anyway.
+"""
 
 from __future__ import annotations
 
 from typing import Any
 
+from .conformance import check_comparable, protocol_differences
 from .formatting import MISSING, sci, sig
 from .results import RECORD_KEY, ResultsDocument, record_key, validate
 
@@ -19,8 +24,11 @@ def _ratio(a: float | None, b: float | None) -> float | None:
     return b / a
 
 
-def compare(a: ResultsDocument, b: ResultsDocument) -> list[dict[str, Any]]:
+def compare(a: ResultsDocument, b: ResultsDocument, *, force: bool = False) -> list[dict[str, Any]]:
     """Pair the records of ``a`` and ``b`` by key; per pair the values and the ratios B / A.
+
+    Raises :class:`~dks_gym.evaluation.conformance.ProtocolMismatch`, naming the fields that differ, when the
+    two were made under different protocol settings, unless ``force``.
 
     Each row: the key fields, ``mse_a``, ``mse_b``, ``mse_ratio`` (final_mse_mean B / A), ``norm_ratio``
     (max over trajectories of max_forecast_norm), ``time_ratio`` (da_step_seconds). Records present in only
@@ -28,6 +36,8 @@ def compare(a: ResultsDocument, b: ResultsDocument) -> list[dict[str, Any]]:
     """
     validate(a)
     validate(b)
+    if not force:
+        check_comparable(a, b)
     index_b = {record_key(r): r for r in b["records"]}
     rows: list[dict[str, Any]] = []
     for ra in a["records"]:
@@ -48,10 +58,12 @@ def compare(a: ResultsDocument, b: ResultsDocument) -> list[dict[str, Any]]:
     return rows
 
 
-def format_comparison(a: ResultsDocument, b: ResultsDocument, rows: list[dict[str, Any]] | None = None) -> str:
-    """A plain-text table of :func:`compare` (ratios B / A), with a note when the two files differ in setup."""
-    rows = compare(a, b) if rows is None else rows
-    notes = []
+def format_comparison(a: ResultsDocument, b: ResultsDocument, rows: list[dict[str, Any]] | None = None, *,
+                      force: bool = False) -> str:
+    """A plain-text table of :func:`compare` (ratios B / A), with a note when the two files differ in setup
+    (``force``: as :func:`compare`)."""
+    rows = compare(a, b, force=force) if rows is None else rows
+    notes = [f"note: not the same protocol settings (compared with --force): {d}" for d in protocol_differences(a, b)]
     for name in ("benchmark", "preset"):
         if a[name] != b[name]:
             notes.append(f"note: {name} differs: A={a[name]!r}, B={b[name]!r}")

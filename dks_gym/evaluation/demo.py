@@ -20,6 +20,7 @@ from ..benchmarks import get_benchmark
 from ..assimilation import AssimilationConfig
 from ..dataset import Dataset
 from ..models import LatentModel
+from .conformance import stamp_protocol
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart
 from .formatting import MISSING, fixed, mean_std, text_table
 from .results import RESULTS_FILE, Record, make_record, new_results, save_results
@@ -146,7 +147,7 @@ def run_demo(
 
     config = dict(_demo_config(ds, base, device), wall_time_s=time.perf_counter() - start,
                   setup_time_s=trained - start, shipped_models=shipped)
-    doc = new_results(DEMO_BENCHMARK, "lite", dataset_identity(ds), config, records)
+    doc = stamp_protocol(new_results(DEMO_BENCHMARK, "lite", dataset_identity(ds), config, records))
     save_results(doc, out / RESULTS_FILE)
 
     baseline = next(r for r in records if r["model"] == "mlp" and r["filter"] == "forward")

@@ -7,7 +7,8 @@ draw. Models come from :func:`dks_gym.models.load_model` (trained when missing u
 rerun reuses every finished or resumes every interrupted training). Identical runs requested by several
 experiments are computed once. The output folder gets ``results.json.gz`` (schema in
 :mod:`dks_gym.evaluation.results`; the records of experiments not rerun are kept from an existing file for
-the same benchmark, preset and dataset), ``tables.md`` (ours beside the paper's numbers) and
+the same benchmark, preset, dataset and protocol; the file names the benchmark's protocol and marks the
+records that leave it, :mod:`dks_gym.evaluation.conformance`), ``tables.md`` (ours beside the paper's numbers) and
 ``figures/*.png``.
 """
 
@@ -23,8 +24,10 @@ from typing import Any
 
 from ..assimilation import AssimilationConfig, AssimilationResult, run_assimilation, tune_if_missing
 from ..assimilation.config import PAPER_P0, PAPER_Q
+from ..benchmarks.protocol import get_protocol
 from ..dataset import Dataset
 from ..models import LatentModel
+from .conformance import PROTOCOL_KEY, stamp_protocol
 from .experiment import EXPERIMENTS, Run, Section
 from .figures import MODEL_LABELS
 from .formatting import fixed, markdown_table, sci
@@ -148,6 +151,12 @@ def _previous(path: Path, benchmark: str, preset: str, identity: dict[str, Any])
             f"{doc['dataset'].get('path')}, which cannot be combined with this run ({benchmark} / preset {preset} on "
             f"{identity.get('path')}); choose another --out or remove the file"
         )
+    ours = get_protocol(benchmark)
+    theirs = doc.get(PROTOCOL_KEY)
+    # a file written before protocols holds runs made as dks-v1 v1 prescribes: it is extended and stamped
+    if theirs is not None and (theirs.get("name"), theirs.get("version")) != (ours.name, ours.version):
+        raise ResultsError(f"{path} holds results of protocol {theirs.get('name')} v{theirs.get('version')}, not "
+                           f"{ours.name} v{ours.version}; choose another --out or remove the file")
     return doc
 
 
@@ -235,6 +244,7 @@ class Reproduction:
             doc = merge(self.previous, doc)
         present = {r["experiment"] for r in doc["records"]}
         doc["config"]["experiments"] = [n for n in EXPERIMENTS if n in present]
+        stamp_protocol(doc)
         save_results(doc, self.out / RESULTS_FILE)
         (self.out / "tables.md").write_text(tables_markdown(doc))
         self.doc = doc

@@ -5,6 +5,8 @@ One file holds the runs of one benchmark with one model preset::
     {
       "schema": "dks-gym-results", "schema_version": 1,
       "benchmark": "burgers", "preset": "lite",
+      "protocol": {"name", "version", ..., "deviations"},          # optional: the protocol the runs follow
+                                                                     # (dks_gym.evaluation.conformance)
       "dataset": {"path", "preset", "created", "fingerprint"},      # identity of the data evaluated on
       "config": {...},                                               # what every record shares (sensors, P0, Q, seeds,
                                                                      # device, versions, created, ...)
@@ -42,8 +44,10 @@ A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run
     per_step_gain_norm_mean, per_step_spread_mean     [n_t - 1]   (optional) ||K_k||_2 and the filter's spread
                                     sqrt(tr P / r) after each step, mean over trajectories
 
-Non-finite numbers are stored as ``null`` (strict JSON). :func:`compare` pairs the records of two files
-by their key and gives the ratios B / A.
+A record may carry ``protocol_deviations`` ([str]: the protocol fields its run leaves). ``protocol`` is
+optional, so the files of an older dks-gym stay valid under ``schema_version`` 1: it adds to the schema
+without changing what any other field means. Non-finite numbers are stored as ``null`` (strict JSON).
+:func:`compare` pairs the records of two files by their key and gives the ratios B / A.
 """
 
 from __future__ import annotations
@@ -129,6 +133,7 @@ class _DocumentRequired(TypedDict):
 class ResultsDocument(_DocumentRequired, total=False):
     """A results file's content (the layout above)."""
 
+    protocol: dict[str, Any]
     models: list[dict[str, Any]]
 
 
@@ -301,6 +306,23 @@ def validate_record(rec: Any, where: str = "record") -> None:
             _check_list(rec, name, where, len(rec["per_step_mse_mean"]) - 1, "the number of filter steps")
 
 
+def _validate_protocol(doc: dict[str, Any]) -> None:
+    """The optional protocol block (a name, a positive version, a dict of deviations) and the records' marks."""
+    block = doc.get("protocol")
+    if block is not None:
+        if not isinstance(block, dict) or not isinstance(block.get("name"), str) or not block["name"]:
+            raise ResultsError(f"'protocol' must be an object with a non-empty 'name', got {block!r:.80}")
+        version = block.get("version")
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            raise ResultsError(f"'protocol' needs a positive integer 'version', got {version!r}")
+        if not isinstance(block.get("deviations", {}), dict):
+            raise ResultsError("'protocol.deviations' must map protocol fields to the run's values")
+    for i, rec in enumerate(doc["records"]):
+        marks = rec.get("protocol_deviations") if isinstance(rec, dict) else None
+        if marks is not None and not (isinstance(marks, list) and all(isinstance(m, str) for m in marks)):
+            raise ResultsError(f"records[{i}]: 'protocol_deviations' must be a list of field names, got {marks!r}")
+
+
 def validate(doc: Any) -> dict[str, Any]:
     """Raise :class:`ResultsError` if ``doc`` is not a results document of this schema; return it."""
     if not isinstance(doc, dict):
@@ -325,6 +347,7 @@ def validate(doc: Any) -> dict[str, Any]:
         raise ResultsError("'models' must be a list")
     if not isinstance(doc["records"], list):
         raise ResultsError("'records' must be a list")
+    _validate_protocol(doc)
     seen: dict[tuple, int] = {}
     for i, rec in enumerate(doc["records"]):
         validate_record(rec, f"records[{i}]")
