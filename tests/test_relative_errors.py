@@ -1,0 +1,75 @@
+"""The relative L2 error ||x^ - x|| / ||x|| and the score 100 (1 - relative L2) beside Eq. 18's MSE: their
+computation, the wrappers' infos, the records and the tables, each against a direct numpy computation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dks_gym.assimilation import AssimilationConfig, ctf_score, field_errors, relative_l2_errors, run_assimilation
+from dks_gym.dataset import Dataset
+from dks_gym.models import build_model
+from dks_gym.models.calibration import calibrate
+
+
+def _direct(estimate: np.ndarray, truth: np.ndarray, scored: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """numpy: the relative L2 error over the scored channels and every cell (B,), and per channel (B, n)."""
+    diff = (estimate.astype(np.float64) - truth.astype(np.float64))[:, scored].reshape(len(truth), len(scored), -1)
+    x = truth.astype(np.float64)[:, scored].reshape(len(truth), len(scored), -1)
+    total = np.sqrt((diff**2).sum(axis=(1, 2)) / (x**2).sum(axis=(1, 2)))
+    return total, np.sqrt((diff**2).sum(-1) / (x**2).sum(-1))
+
+
+def test_relative_l2_against_numpy_and_the_mse() -> None:
+    """Over the scored channels only, every cell; the square is the MSE over the mean square of the truth;
+    a channel whose truth is 0 has NaN (no error relative to nothing); the score is 100 (1 - it)."""
+    rng = np.random.default_rng(0)
+    truth = rng.normal(size=(3, 4, 6, 5)).astype(np.float32)
+    estimate = (truth + 0.1 * rng.normal(size=truth.shape)).astype(np.float32)
+    estimate[:, 1] += 100.0  # an unscored channel: must not count
+    scored = (0, 2, 3)
+    total, per_channel = relative_l2_errors(torch.as_tensor(estimate), torch.as_tensor(truth), scored)
+    expected = _direct(estimate, truth, list(scored))
+    np.testing.assert_allclose(total, expected[0], rtol=1e-12)
+    np.testing.assert_allclose(per_channel, expected[1], rtol=1e-12)
+    mse = field_errors(torch.as_tensor(estimate).double(), torch.as_tensor(truth).double(), scored).numpy()
+    np.testing.assert_allclose(total**2, mse / (truth[:, list(scored)].astype(np.float64) ** 2).mean((1, 2, 3)),
+                               rtol=1e-10)
+    assert total.dtype == per_channel.dtype == np.float64 and per_channel.shape == (3, 3)
+
+    truth[1, 2] = 0.0  # a fluid at rest in one channel of element 1; element 2 all zero in the scored channels
+    truth[2, list(scored)] = 0.0
+    total, per_channel = relative_l2_errors(torch.as_tensor(estimate), torch.as_tensor(truth), scored)
+    assert np.isnan(per_channel[1, 1]) and np.isfinite(per_channel[1, [0, 2]]).all() and np.isfinite(total[1])
+    assert np.isnan(total[2]) and np.isnan(per_channel[2]).all() and np.isfinite(total[0])
+    assert ctf_score(0.0) == 100.0 and ctf_score(1.0) == 0.0 and ctf_score(1.5) == -50.0
+    np.testing.assert_array_equal(ctf_score(np.array([0.25, np.nan])), [75.0, np.nan])
+
+
+@pytest.fixture
+def dambreak(make_synthetic) -> tuple[Dataset, object]:
+    """A five-channel benchmark (synthetic dambreak data) and an untrained calibrated Koopman model."""
+    ds = Dataset(make_synthetic("dambreak", n_t=5))
+    model = build_model("dambreak", "koopman", r=8, preset="lite", dataset=ds, seed=0)
+    model.calibration = calibrate(model, ds, [0, 1])
+    model.calibration["Q_scale"] = torch.tensor(1.0, dtype=torch.float64)
+    return ds, model
+
+
+def test_a_run_records_the_relative_error_of_every_frame(dambreak) -> None:
+    """The result's final relative errors are those of its final fields, and its summaries their means."""
+    ds, model = dambreak
+    result = run_assimilation(model, ds, AssimilationConfig().replace(kind="ekf"), uncertainty=False)
+    scored = list(ds.benchmark.scored_indices)
+    total, per_channel = _direct(result.final_estimate, result.final_truth, scored)
+    assert result.step_rel_l2.shape == result.step_mse.shape
+    np.testing.assert_allclose(result.final_rel_l2, total, rtol=1e-6)
+    np.testing.assert_allclose(result.final_channel_rel_l2, per_channel, rtol=1e-6)
+    assert result.final_rel_l2_mean == pytest.approx(total.mean(), rel=1e-6)
+    assert result.final_rel_l2_std == pytest.approx(total.std(ddof=1), rel=1e-5)
+    assert result.final_score_mean == pytest.approx(100 * (1 - total.mean()), rel=1e-6)
+    np.testing.assert_allclose(result.per_step_rel_l2_mean, result.step_rel_l2.mean(0))
+    truth0 = np.stack([ds.trajectory("test", int(t))[0] for t in result.trajectories])
+    mean_square = (truth0[:, scored].astype(np.float64) ** 2).reshape(len(truth0), -1).mean(1)
+    np.testing.assert_allclose(result.step_rel_l2[:, 0] ** 2, result.step_mse[:, 0] / mean_square, rtol=1e-4)
