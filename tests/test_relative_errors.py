@@ -73,3 +73,56 @@ def test_a_run_records_the_relative_error_of_every_frame(dambreak) -> None:
     truth0 = np.stack([ds.trajectory("test", int(t))[0] for t in result.trajectories])
     mean_square = (truth0[:, scored].astype(np.float64) ** 2).reshape(len(truth0), -1).mean(1)
     np.testing.assert_allclose(result.step_rel_l2[:, 0] ** 2, result.step_mse[:, 0] / mean_square, rtol=1e-4)
+
+
+def _check_info(info: dict, truth: np.ndarray, channels: tuple[str, ...], scored: list[int]) -> None:
+    """An info's relative errors and score against numpy on its own estimate and the env's true state."""
+    total, per_channel = _direct(info["estimate"][None], truth[None], scored)
+    assert info["relative_l2"] == pytest.approx(total[0], rel=1e-6)
+    assert info["score"] == pytest.approx(100 * (1 - total[0]), rel=1e-6)
+    assert list(info["relative_l2_channels"]) == list(channels)
+    np.testing.assert_allclose(list(info["relative_l2_channels"].values()), per_channel[0], rtol=1e-6)
+
+
+def test_the_wrappers_infos_hold_the_relative_errors(dambreak) -> None:
+    """LatentFilter's info at reset and each step, against numpy on info["estimate"] and the true state;
+    the vector env's infos are those of N single envs, and stable-baselines3's list of infos passes them on."""
+    import gymnasium as gym
+
+    from dks_gym.wrappers import LatentFilter
+    from dks_gym.wrappers.vector import LatentFilterVectorEnv, SB3VecEnv
+
+    ds, model = dambreak
+    bench = ds.benchmark
+    scored = list(bench.scored_indices)
+    singles = []
+    for i in range(2):
+        env = LatentFilter(gym.make("DKS/Dambreak-v0", data_path=str(ds.path)), model=model, filter="ekf")
+        infos = [env.reset(seed=10 + i)[1]]
+        _check_info(infos[0], env.unwrapped.true_state, bench.scored_channels, scored)
+        for _ in range(2):
+            infos.append(env.step(None)[-1])
+            _check_info(infos[-1], env.unwrapped.true_state, bench.scored_channels, scored)
+        singles.append(infos)
+        env.close()
+    venv = LatentFilterVectorEnv("dambreak", 2, model=model, filter="ekf", data_path=str(ds.path))
+    batched = [venv.reset(seed=10)[1]] + [venv.step(np.zeros(2))[-1] for _ in range(2)]
+    for k, infos in enumerate(batched):
+        for i in range(2):
+            assert infos["relative_l2"][i] == pytest.approx(singles[i][k]["relative_l2"], rel=2e-4)
+            assert infos["score"][i] == pytest.approx(singles[i][k]["score"], rel=2e-4)
+            for c in bench.scored_channels:
+                assert infos["relative_l2_channels"][c][i] == pytest.approx(singles[i][k]["relative_l2_channels"][c],
+                                                                            rel=2e-4)
+    pytest.importorskip("stable_baselines3")
+    sb3 = SB3VecEnv(LatentFilterVectorEnv("dambreak", 2, model=model, filter="ekf", data_path=str(ds.path)))
+    sb3.seed(10)
+    sb3.reset()
+    sb3.step_async(np.zeros(2))
+    out = sb3.step_wait()[-1]
+    for i in range(2):
+        assert out[i]["relative_l2"] == pytest.approx(float(batched[1]["relative_l2"][i]), rel=1e-6)
+        assert out[i]["score"] == pytest.approx(float(batched[1]["score"][i]), rel=1e-6)
+        assert out[i]["relative_l2_channels"] == pytest.approx(
+            {c: float(v[i]) for c, v in batched[1]["relative_l2_channels"].items()}, rel=1e-6)
+
