@@ -126,3 +126,31 @@ def test_the_wrappers_infos_hold_the_relative_errors(dambreak) -> None:
         assert out[i]["relative_l2_channels"] == pytest.approx(
             {c: float(v[i]) for c, v in batched[1]["relative_l2_channels"].items()}, rel=1e-6)
 
+
+def test_records_hold_the_relative_errors_and_old_records_stay_valid(dambreak) -> None:
+    """make_record's relative fields are the result's arrays summarized; a record without them (every record
+    written before them) is valid; malformed ones are refused."""
+    from dks_gym.evaluation.results import ResultsError, make_record, validate_record
+
+    ds, model = dambreak
+    result = run_assimilation(model, ds, AssimilationConfig().replace(kind="forward"), uncertainty=False)
+    rec = make_record(result, experiment="main")
+    final = result.step_rel_l2[:, -1]
+    assert rec["final_rel_l2_mean"] == pytest.approx(final.mean(), rel=1e-12)
+    assert rec["final_rel_l2_std"] == pytest.approx(final.std(ddof=1), rel=1e-12)
+    np.testing.assert_allclose(rec["per_trajectory_final_rel_l2"], final, rtol=1e-12)
+    np.testing.assert_allclose(rec["per_step_rel_l2_mean"], result.step_rel_l2.mean(0), rtol=1e-12)
+    assert rec["final_score_mean"] == pytest.approx(100 * (1 - final.mean()), rel=1e-12)
+    assert list(rec["final_channel_rel_l2_mean"]) == list(ds.scored_channels)
+    np.testing.assert_allclose(list(rec["final_channel_rel_l2_mean"].values()),
+                               result.final_channel_rel_l2.mean(0), rtol=1e-12)
+    validate_record(rec)
+    fields = ("final_rel_l2_mean", "final_rel_l2_std", "per_step_rel_l2_mean", "per_trajectory_final_rel_l2",
+              "final_score_mean", "final_channel_rel_l2_mean")
+    validate_record({k: v for k, v in rec.items() if k not in fields})
+    validate_record(dict(rec, final_rel_l2_mean=None, final_score_mean=None))  # a truth of norm 0
+    for name, bad in (("final_rel_l2_mean", "x"), ("final_score_mean", [1.0]),
+                      ("per_trajectory_final_rel_l2", [0.1]), ("per_step_rel_l2_mean", [0.1, 0.2]),
+                      ("final_channel_rel_l2_mean", {"p": "x"})):
+        with pytest.raises(ResultsError, match=name):
+            validate_record(dict(rec, **{name: bad}))
