@@ -154,3 +154,54 @@ def test_records_hold_the_relative_errors_and_old_records_stay_valid(dambreak) -
                       ("final_channel_rel_l2_mean", {"p": "x"})):
         with pytest.raises(ResultsError, match=name):
             validate_record(dict(rec, **{name: bad}))
+
+
+def _strip(doc: dict) -> dict:
+    """The document as records written before the relative error would hold it."""
+    return dict(doc, records=[{k: v for k, v in r.items() if "rel_l2" not in k and "score" not in k}
+                              for r in doc["records"]])
+
+
+def _rel(rec: dict) -> str:
+    """A relative error and its score as the tables print them, written out here independently."""
+    rel = rec["final_rel_l2_mean"]
+    return f"{100 * rel:.3g} % ({100 * (1 - rel):.1f})"
+
+
+def test_tables_show_the_relative_errors_only_where_the_records_hold_them(dambreak) -> None:
+    """The reproduce tables (main and per channel), the demo table and `dks-gym compare` gain relative-L2
+    columns with records that hold it, and print as before with records that predate it."""
+    from dks_gym.evaluation.comparison import format_comparison
+    from dks_gym.evaluation.demo import demo_table
+    from dks_gym.evaluation.reproduce import tables_markdown
+    from dks_gym.evaluation.results import make_record, new_results
+    from dks_gym.evaluation.tabulate import Column, tabulate
+
+    ds, model = dambreak
+    records = [make_record(run_assimilation(model, ds, AssimilationConfig().replace(kind=f), uncertainty=False),
+                           experiment="main") for f in ("forward", "ekf")]
+    doc = new_results("dambreak", "lite", {"path": "x.h5", "fingerprint": "0"},
+                      {"scored_channels": list(ds.scored_channels), "n_test": 2}, records)
+    lines = tables_markdown(doc).splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("## Main comparison, approximate"))
+    header = [c.strip() for c in lines[start + 2].strip("|").split("|")]
+    koopman = [c.strip() for c in next(line for line in lines[start:] if line.startswith("| Koopman")).strip("|")
+               .split("|")]
+    assert header[3:5] == ["forward rel. L2 (score)", "EKF rel. L2 (score)"]
+    assert koopman[3:5] == [_rel(records[0]), _rel(records[1])]
+    channel_header = next(line for line in lines if line.startswith("| model | estimate |"))
+    assert all(f"| {c} rel. L2 |" in channel_header for c in ds.scored_channels)
+    old = tables_markdown(_strip(doc))
+    assert "rel. L2" not in old and "(score)" not in old
+
+    assert tabulate([{"a": 1}], [Column("kept", lambda r: "-"), Column("dropped", lambda r: "", optional=True),
+                                 Column("shown", lambda r: "x", optional=True)]) == "| kept | shown |\n|---|---|\n| - | x |"
+
+    demo = [dict(r, model="koopman") for r in records]
+    assert "relative L2 error" in demo_table(demo) and _rel(records[1]) in demo_table(demo)
+    assert demo_table(_strip({"records": demo})["records"]) == demo_table(demo).split("\n\n")[0]
+
+    compared = format_comparison(doc, doc)
+    assert "rel. L2 A" in compared.splitlines()[0]
+    assert f"{100 * records[0]['final_rel_l2_mean']:.3g} %" in compared.splitlines()[2]
+    assert "rel. L2" not in format_comparison(_strip(doc), doc)
