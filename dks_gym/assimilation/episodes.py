@@ -37,7 +37,7 @@ from ..envs.sensing import SensingEnv
 from ..models import FilterableModel
 from .config import AssimilationConfig
 from .core import Assimilation
-from .errors import ctf_score, field_errors
+from .errors import field_errors
 
 
 @dataclass
@@ -101,28 +101,6 @@ class AssimilationResult:
     def final_rel_l2(self) -> np.ndarray | None:
         """(B,) final-frame relative L2 error per trajectory (None if not measured)."""
         return None if self.step_rel_l2 is None else self.step_rel_l2[:, -1]
-
-    @property
-    def final_rel_l2_mean(self) -> float | None:
-        """Mean over trajectories of the final relative L2 error (NaN if one is NaN)."""
-        return None if self.step_rel_l2 is None else float(np.mean(self.final_rel_l2))
-
-    @property
-    def final_rel_l2_std(self) -> float | None:
-        """Sample standard deviation across trajectories (NaN for a single trajectory)."""
-        if self.step_rel_l2 is None:
-            return None
-        return float(np.std(self.final_rel_l2, ddof=1)) if self.batch > 1 else float("nan")
-
-    @property
-    def per_step_rel_l2_mean(self) -> np.ndarray | None:
-        """(n_t,) relative L2 error at every frame averaged over trajectories."""
-        return None if self.step_rel_l2 is None else self.step_rel_l2.mean(axis=0)
-
-    @property
-    def final_score_mean(self) -> float | None:
-        """The score 100 (1 - relative L2) at the final frame, mean over trajectories (can be negative)."""
-        return None if self.step_rel_l2 is None else float(np.mean(ctf_score(self.final_rel_l2)))
 
     @property
     def max_forecast_norm(self) -> np.ndarray | None:

@@ -66,6 +66,7 @@ from typing import Any, TypedDict
 
 import numpy as np
 
+from ..assimilation import ctf_score
 from ..atomic import atomic_path
 from ..names import ESTIMATORS, FILTERS, MODEL_KINDS
 
@@ -199,23 +200,24 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
         values = getattr(result, name, None)
         if values is not None:
             record[f"per_step_{name}_mean"] = _numbers(np.mean(values, axis=1))
-    record.update(_relative_fields(result))
+    if getattr(result, "step_rel_l2", None) is not None:
+        record.update(relative_fields(result.step_rel_l2, result.final_channel_rel_l2, result.channels))
     if keep_curves:
         record["per_trajectory_step_mse"] = _numbers(result.step_mse)
     return record
 
 
-def _relative_fields(result: Any) -> dict[str, Any]:
-    """The relative L2 fields of a record (none for a result that did not measure it)."""
-    if getattr(result, "step_rel_l2", None) is None:
-        return {}
-    return {"final_rel_l2_mean": _number(result.final_rel_l2_mean),
-            "final_rel_l2_std": _number(result.final_rel_l2_std),
-            "per_step_rel_l2_mean": _numbers(result.per_step_rel_l2_mean),
-            "per_trajectory_final_rel_l2": _numbers(result.final_rel_l2),
-            "final_score_mean": _number(result.final_score_mean),
-            "final_channel_rel_l2_mean": {c: _number(v) for c, v in zip(result.channels,
-                                                                         result.final_channel_rel_l2.mean(0))}}
+def relative_fields(step_rel_l2: np.ndarray, final_channel_rel_l2: np.ndarray,
+                    channels: Iterable[str]) -> dict[str, Any]:
+    """A record's relative L2 fields from the relative errors of its episodes at every frame (B, n_t) and of
+    each scored channel (``channels``) at the final frame (B, n_scored)."""
+    final = np.asarray(step_rel_l2, dtype=np.float64)[:, -1]
+    return {"final_rel_l2_mean": _number(np.mean(final)),
+            "final_rel_l2_std": _number(np.std(final, ddof=1)) if len(final) > 1 else None,
+            "per_step_rel_l2_mean": _numbers(np.mean(step_rel_l2, axis=0)),
+            "per_trajectory_final_rel_l2": _numbers(final),
+            "final_score_mean": _number(np.mean(ctf_score(final))),
+            "final_channel_rel_l2_mean": {c: _number(v) for c, v in zip(channels, np.mean(final_channel_rel_l2, 0))}}
 
 
 def shared_dataset(identity: dict[str, Any]) -> dict[str, Any]:
@@ -443,6 +445,7 @@ __all__ = [
     "merge",
     "new_results",
     "record_key",
+    "relative_fields",
     "run_key",
     "save_results",
     "select",
