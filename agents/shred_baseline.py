@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from dks_gym.assimilation import field_errors
-from dks_gym.evaluation.results import UNCERTAINTY_SCORES
+from dks_gym.assimilation import field_errors, relative_l2_errors
+from dks_gym.evaluation.results import UNCERTAINTY_SCORES, relative_fields
 from dks_gym.models.shred import Shred, ShredConfig, read_episodes
 
 from .policies import PlacementTask
@@ -24,6 +24,15 @@ def frame_errors(estimate: np.ndarray, truth: np.ndarray, scored: Sequence[int])
     (E, n_t, C, *grid): (E, n_t), float64."""
     flat = [torch.as_tensor(np.asarray(x, dtype=np.float64).reshape(-1, *x.shape[2:])) for x in (estimate, truth)]
     return field_errors(*flat, tuple(scored)).numpy().reshape(estimate.shape[:2])
+
+
+def frame_relative_errors(estimate: np.ndarray, truth: np.ndarray,
+                          scored: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """The relative L2 error (:func:`~dks_gym.assimilation.relative_l2_errors`) at every frame of episodes of
+    fields (E, n_t, C, *grid): over the scored channels (E, n_t) and per scored channel (E, n_t, n_scored)."""
+    flat = [torch.as_tensor(np.asarray(x, dtype=np.float64).reshape(-1, *x.shape[2:])) for x in (estimate, truth)]
+    total, per_channel = relative_l2_errors(*flat, tuple(scored))
+    return total.reshape(estimate.shape[:2]), per_channel.reshape(*estimate.shape[:2], -1)
 
 
 def evaluate_shred(task: PlacementTask, pr: PolicyResult, noise_seeds: Sequence[int],
@@ -47,6 +56,7 @@ def evaluate_shred(task: PlacementTask, pr: PolicyResult, noise_seeds: Sequence[
     step = frame_errors(estimate, truth, task.benchmark.scored_indices)
     floor = frame_errors(shred.project(truth), truth, task.benchmark.scored_indices)[:, 1:].mean()
     final, tm = step[:, -1], step[:, 1:].mean(axis=1)
+    relative, per_channel = frame_relative_errors(estimate, truth, task.benchmark.scored_indices)
     rec: dict[str, Any] = {
         "experiment": f"placement/shred-{pr.name}", "model": "shred", "filter": "none", "initial": "approximate",
         "noise": float(cfg.noise_level), "r": int(shred.network.decoder[-1].out_features), "T": 1, "n_members": None,
@@ -62,8 +72,9 @@ def evaluate_shred(task: PlacementTask, pr: PolicyResult, noise_seeds: Sequence[
         "per_trajectory_time_mean_mse": [float(v) for v in tm], "fit_seconds": shred.fit_seconds,
         "offline_seconds": shred.fit_seconds, "decision_seconds": None, "policy_config": shred.describe(),
         "noise_seeds": [int(s) for s in seeds], "pod_floor_time_mean_mse": float(floor),
+        **relative_fields(relative, per_channel[:, -1], task.benchmark.scored_channels),
     }
     return rec
 
 
-__all__ = ["evaluate_shred", "frame_errors"]
+__all__ = ["evaluate_shred", "frame_errors", "frame_relative_errors"]

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from dks_gym.envs import SensorFaults
-from dks_gym.evaluation.formatting import cost, fixed, markdown_table, mean_std, sci, signed
+from dks_gym.evaluation.formatting import cost, fixed, markdown_table, mean_std, relative_score, sci, signed
 from dks_gym.evaluation.results import load_results, save_results
 
 from .paired import add_paired_vs_random, paired_vs_random
@@ -85,10 +85,13 @@ def ranked_table(doc: dict[str, Any]) -> str:
     paper = next((r for r in recs if r["policy"] == "paper"), None)
     forward = next((r for r in recs if r["policy"] == "forward"), None)
     paired = paired_vs_random(doc)
+    # Records older than the relative L2 error lack it: their table prints as it did, without its column.
+    relative = any(r.get("final_rel_l2_mean") is not None for r in recs)
 
     def errors(rec: dict[str, Any]) -> list[str]:
+        rel = [relative_score(rec.get("final_rel_l2_mean"), rec.get("final_score_mean"))] if relative else []
         return [mean_std(rec["time_mean_mse_mean"], rec["time_mean_mse_std"]),
-                mean_std(rec["final_mse_mean"], rec["final_mse_std"]),
+                mean_std(rec["final_mse_mean"], rec["final_mse_std"]), *rel,
                 *_versus_paper(rec, paper), *_versus_random(paired.get(rec["policy"]))]
 
     rows = [[str(i), rec["policy"] + (" (adaptive)" if rec.get("adaptive") else ""), *errors(rec),
@@ -96,7 +99,8 @@ def ranked_table(doc: dict[str, Any]) -> str:
             for i, rec in enumerate(policies, 1)]
     if forward is not None:
         rows.append(["-", "forward run (no sensors)", *errors(forward), "-", "-"])
-    return "\n".join([markdown_table(RANKED_HEADER, rows), *_ranked_notes(doc, paired)]) + "\n"
+    header = (*RANKED_HEADER[:4], "final rel. L2 (score)", *RANKED_HEADER[4:]) if relative else RANKED_HEADER
+    return "\n".join([markdown_table(header, rows), *_ranked_notes(doc, paired)]) + "\n"
 
 
 def rewrite_tables(folder: str | Path) -> Path:

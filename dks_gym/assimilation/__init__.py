@@ -6,6 +6,8 @@
 * :func:`run_episodes`: the one loop over whole episodes (the envs' layouts, a fixed layout per episode
   or a layout chosen per step), and :func:`run_assimilation` over a dataset split;
 * :class:`AssimilationConfig`, :class:`AssimilationResult`: an evaluation run's settings and measurements;
+* :mod:`~dks_gym.assimilation.errors`: the errors of an estimate (:func:`field_errors`, Eq. 18's MSE;
+  :func:`relative_l2_errors`, ||x^ - x|| / ||x||; :func:`ctf_score`, 100 (1 - relative L2));
 * :mod:`~dks_gym.assimilation.tuning`: the scale of the calibrated process noise (:func:`calibrate_process_noise`);
 * :mod:`~dks_gym.assimilation.uncertainty`: the predictive std of the decoded estimate (``estimate_std``),
   :func:`reconstruction_variance` and the scores (:func:`gaussian_scores`, :func:`gaussian_crps`).
@@ -19,7 +21,7 @@ from .config import (
     FilterConfig,
     process_noise_scale,
 )
-from .core import Assimilation, Snapshot, approximate_initial_latent, field_errors
+from .core import Assimilation, Snapshot, approximate_initial_latent
 from .episodes import (
     AssimilationResult,
     close_envs,
@@ -28,6 +30,7 @@ from .episodes import (
     run_dataset,
     run_episodes,
 )
+from .errors import ctf_score, field_errors, relative_l2_errors
 from .resolve import ModelLike, resolve_model
 from .tuning import calibrate_process_noise, held_out_coverage, tune_if_missing, tune_process_noise
 from .uncertainty import (
@@ -51,6 +54,7 @@ __all__ = [
     "approximate_initial_latent",
     "calibrate_process_noise",
     "close_envs",
+    "ctf_score",
     "ensemble_variance",
     "episode_envs",
     "field_errors",
@@ -60,6 +64,7 @@ __all__ = [
     "jacobian_variance",
     "process_noise_scale",
     "reconstruction_variance",
+    "relative_l2_errors",
     "resolve_model",
     "run_assimilation",
     "run_dataset",

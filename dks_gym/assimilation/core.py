@@ -25,6 +25,7 @@ from ..filters import EKF, EnKF, LatentDynamics, bind_param
 from ..models import FilterableModel, model_device, model_dtype
 from ..threads import torch_threads
 from .config import FilterConfig
+from .errors import ctf_score, field_errors, relative_l2_errors
 from .uncertainty import ensemble_variance, gaussian_scores, jacobian_variance
 
 # Per model, per dataset file: the approximate initial latent state (it costs one pass over the train split).
@@ -48,22 +49,16 @@ def approximate_initial_latent(model: FilterableModel, dataset: Dataset) -> torc
     return per_model[key]
 
 
-def field_errors(estimate: torch.Tensor, truth: torch.Tensor, scored: tuple[int, ...],
-                 std: torch.Tensor | None = None) -> torch.Tensor:
-    """Eq. 18: MSE over the scored channels and all cells, per batch element; standardized when ``std`` is given."""
-    diff = (estimate[:, list(scored)] - truth[:, list(scored)]).flatten(2)
-    if std is not None:
-        diff = diff / std[list(scored)].to(diff)[None, :, None]
-    return diff.pow(2).mean(dim=(1, 2))
-
-
 @dataclass
 class Snapshot:
-    """The decoded estimate after a start or a step, with its Eq. 18 scores, per batch element."""
+    """The decoded estimate after a start or a step, with its errors (:mod:`~dks_gym.assimilation.errors`),
+    per batch element."""
 
     estimate: torch.Tensor  # (B, C, *grid) decoded filter mean, physical units
-    mse: np.ndarray  # (B,) physical units
+    mse: np.ndarray  # (B,) Eq. 18, physical units
     normalized_mse: np.ndarray  # (B,) over standardized channels
+    relative_l2: np.ndarray  # (B,) ||x^ - x|| / ||x|| over the scored channels (NaN where ||x|| = 0)
+    channel_relative_l2: np.ndarray  # (B, n_scored) the same per scored channel, in the benchmark's order
     latent_mean: np.ndarray  # (B, r)
     diagnostics: dict[str, np.ndarray] = field(default_factory=dict)  # gain_norm, spread, (EKF) forecast_norm
     # With uncertainty (else None): the predictive std of every cell (B, C, *grid), physical units, and its
@@ -72,6 +67,11 @@ class Snapshot:
     coverage: np.ndarray | None = None
     nees: np.ndarray | None = None
     crps: np.ndarray | None = None
+
+    @property
+    def score(self) -> np.ndarray:
+        """(B,) the Common Task Framework's score 100 (1 - relative_l2) (:func:`~dks_gym.assimilation.ctf_score`)."""
+        return ctf_score(self.relative_l2)
 
 
 class _SensorRows:
@@ -189,9 +189,11 @@ class Assimilation:
         truth = self._truth(envs).to(estimate)
         bench = envs[0].benchmark
         std = torch.as_tensor(envs[0].dataset.stats_std, device=estimate.device)
+        relative, per_channel = relative_l2_errors(estimate, truth, bench.scored_indices)
         snap = Snapshot(estimate=estimate,
                         mse=field_errors(estimate, truth, bench.scored_indices).cpu().numpy(),
                         normalized_mse=field_errors(estimate, truth, bench.scored_indices, std).cpu().numpy(),
+                        relative_l2=relative, channel_relative_l2=per_channel,
                         latent_mean=self._latent_mean().cpu().numpy())
         if self.uncertainty:
             snap.estimate_std = self.predictive_std(estimate)

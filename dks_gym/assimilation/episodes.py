@@ -12,7 +12,8 @@ unless it is the forward run, by an update with that frame's readings. The senso
 
 :func:`run_assimilation` runs it over the trajectories of a dataset split (paper Section IV); the
 placement harness (``dks_gym_agents.scoring``) over (layout, trajectory) pairs and adaptive policies.
-Per episode and frame it records the Eq. 18 MSE of the decoded mean (frame 0 is the initial estimate),
+Per episode and frame it records the Eq. 18 MSE of the decoded mean (frame 0 is the initial estimate) and
+its relative L2 error (:func:`~dks_gym.assimilation.relative_l2_errors`),
 the forecast Jacobian norm ``||F_k||_2`` of each step (EKF and forward run) and the wall time of each
 batched filter step (CUDA synchronized); with ``uncertainty=True`` (default) also the scores of the
 predictive std per frame (95 % coverage, mean NEES per cell, Gaussian CRPS) and the final std field.
@@ -35,7 +36,8 @@ from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
 from ..models import FilterableModel
 from .config import AssimilationConfig
-from .core import Assimilation, field_errors
+from .core import Assimilation
+from .errors import field_errors
 
 
 @dataclass
@@ -71,6 +73,10 @@ class AssimilationResult:
     # the ensemble): whether the filter still listens to the sensors (a collapsed ensemble does not).
     gain_norm: np.ndarray | None = None
     spread: np.ndarray | None = None
+    # The relative L2 error ||x^ - x|| / ||x|| over the scored channels (same cells, channels and units as
+    # step_mse; NaN where the truth is 0), (B, n_t), and per scored channel at the final frame, (B, n_scored).
+    step_rel_l2: np.ndarray | None = None
+    final_channel_rel_l2: np.ndarray | None = None
 
     @property
     def final_mse(self) -> np.ndarray:
@@ -90,6 +96,11 @@ class AssimilationResult:
     def per_step_mse_mean(self) -> np.ndarray:
         """(n_t,) MSE at every frame averaged over trajectories."""
         return self.step_mse.mean(axis=0)
+
+    @property
+    def final_rel_l2(self) -> np.ndarray | None:
+        """(B,) final-frame relative L2 error per trajectory (None if not measured)."""
+        return None if self.step_rel_l2 is None else self.step_rel_l2[:, -1]
 
     @property
     def max_forecast_norm(self) -> np.ndarray | None:
@@ -262,8 +273,8 @@ def run_episodes(
                         reconstruction_var=reconstruction_var)
     snap = core.start(envs, seed=config.filter.seed, sensors=source.layouts)
     batch = len(envs)
-    step_mse = np.empty((batch, n_t), dtype=np.float64)
-    step_mse[:, 0] = snap.mse
+    step_mse, step_rel_l2 = np.empty((batch, n_t), dtype=np.float64), np.empty((batch, n_t), dtype=np.float64)
+    step_mse[:, 0], step_rel_l2[:, 0] = snap.mse, snap.relative_l2
     scores = {name: np.empty((batch, n_t), dtype=np.float64) for name in ("coverage", "nees", "crps")} \
         if uncertainty else {}
     for name, values in scores.items():
@@ -273,17 +284,19 @@ def run_episodes(
                disable=not progress, dynamic_ncols=True)
     for k in bar:
         snap = core.step(envs, *source.step(k, core))
-        step_mse[:, k] = snap.mse
+        step_mse[:, k], step_rel_l2[:, k] = snap.mse, snap.relative_l2
         for name, values in scores.items():
             values[:, k] = getattr(snap, name)
     bar.close()
-    return _result(model, config, envs, core, snap, step_mse, scores, source.extras(), start)
+    return _result(model, config, envs, core, snap, (step_mse, step_rel_l2), scores, source.extras(), start)
 
 
 def _result(model: FilterableModel, config: AssimilationConfig, envs: Sequence[SensingEnv], core: Assimilation,
-            snap: Any, step_mse: np.ndarray, scores: dict[str, np.ndarray], extras: dict[str, Any],
-            start: float) -> AssimilationResult:
-    """The :class:`AssimilationResult` of a finished loop: the records, the final fields and their errors."""
+            snap: Any, errors: tuple[np.ndarray, np.ndarray], scores: dict[str, np.ndarray],
+            extras: dict[str, Any], start: float) -> AssimilationResult:
+    """The :class:`AssimilationResult` of a finished loop: the records, the final fields and their errors
+    (``errors``: the MSE and the relative L2 error per episode and frame)."""
+    step_mse, step_rel_l2 = errors
     history = core.history()
     bench, truth = envs[0].benchmark, core.truth(envs)
     channel_std = torch.as_tensor(envs[0].dataset.stats_std)
@@ -303,6 +316,7 @@ def _result(model: FilterableModel, config: AssimilationConfig, envs: Sequence[S
         channels=tuple(bench.scored_channels), final_channel_mse=np.stack([m for m, _ in per_channel], axis=1),
         final_channel_nmse=np.stack([n for _, n in per_channel], axis=1),
         gain_norm=history["gain_norm"], spread=history["spread"],
+        step_rel_l2=step_rel_l2, final_channel_rel_l2=snap.channel_relative_l2,
     )
 
 

@@ -22,7 +22,7 @@ from ..dataset import Dataset
 from ..models import LatentModel
 from .conformance import stamp_protocol
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart
-from .formatting import MISSING, fixed, mean_std, text_table
+from .formatting import MISSING, fixed, mean_std, relative_score, text_table
 from .results import RESULTS_FILE, Record, make_record, new_results, save_results
 
 DEMO_BENCHMARK = "burgers"
@@ -30,8 +30,9 @@ DEMO_FILTERS = ("forward", "ekf", "enkf")
 
 
 def demo_table(records: list[Record]) -> str:
-    """The demo's plain-text table: final MSE per model and filter, max ||F_k||, time per EKF step."""
-    rows = []
+    """The demo's plain-text table: final MSE per model and filter, max ||F_k||, time per EKF step; below it,
+    when the records hold it, the final relative L2 error and its score per model and filter."""
+    rows, relative = [], []
     for model in MODEL_ORDER:
         recs = {r["filter"]: r for r in records if r["model"] == model}
         if not recs:
@@ -43,8 +44,15 @@ def demo_table(records: list[Record]) -> str:
         seconds = ekf["da_step_seconds"] if ekf and ekf["da_step_seconds"] is not None else None
         rows.append([MODEL_LABELS[model], *cells, fixed(max(norms) if norms else None, 3),
                      fixed(None if seconds is None else 1e3 * seconds, 1)])
-    return text_table(["model", "forward run", "EKF", "EnKF (n=20)", "max|F| EKF", "EKF ms/step"], rows,
-                      [9, 22, 22, 22, 12, 13])
+        relative.append([MODEL_LABELS[model], *[relative_score(recs[f].get("final_rel_l2_mean"),
+                                                               recs[f].get("final_score_mean"))
+                                                if f in recs else MISSING for f in DEMO_FILTERS]])
+    table = text_table(["model", "forward run", "EKF", "EnKF (n=20)", "max|F| EKF", "EKF ms/step"], rows,
+                       [9, 22, 22, 22, 12, 13])
+    if all(cell == MISSING for row in relative for cell in row[1:]):  # records older than the relative error
+        return table
+    return (f"{table}\n\nrelative L2 error (score 100 (1 - rel. L2)), final frame, mean over trajectories\n"
+            + text_table(["model", "forward run", "EKF", "EnKF (n=20)"], relative, [9, 22, 22, 22]))
 
 
 def first_run_message(train: bool = False) -> str:

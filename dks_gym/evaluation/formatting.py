@@ -4,7 +4,8 @@ tables, the demo, the placement ranking, ``dks-gym compare`` and the README's re
 Errors and other scores print with three significant digits (:func:`sci`): plainly between 0.01 and 1000,
 in scientific notation outside (``1.29e+03``, ``3.90e-04``); a missing or non-finite value prints as ``-``.
 Ratios and times print with three significant digits (:func:`sig`), fractions with fixed decimals, log
-ratios with their sign (:func:`signed`).
+ratios with their sign (:func:`signed`); a relative L2 error as a percentage (:func:`percent`) beside its
+score 100 (1 - relative L2) (:func:`relative_score`).
 """
 
 from __future__ import annotations
@@ -48,6 +49,16 @@ def signed(x: float | None, decimals: int = 3) -> str:
     return f"{x:+.{decimals}f}" if _finite(x) else MISSING
 
 
+def percent(x: float | None) -> str:
+    """A fraction (a relative error) as a percentage with three significant digits (``12.3 %``, ``0.456 %``)."""
+    return f"{sig(100 * x)} %" if _finite(x) else MISSING
+
+
+def relative_score(relative: float | None, score: float | None) -> str:
+    """A relative L2 error and its score 100 (1 - it), one decimal (``12.3 % (87.7)``, ``150 % (-50.0)``)."""
+    return MISSING if not _finite(relative) else f"{percent(relative)} ({fixed(score, 1)})"
+
+
 def cost(x: float | None, scale: float = 1.0, unit: str = "") -> str:
     """A cost (time, memory) scaled into ``unit``: three significant digits, ``1.2e-03`` below 0.01."""
     if not _finite(x):
@@ -74,4 +85,5 @@ def text_table(header: Sequence[str], rows: Sequence[Sequence[str]], widths: Seq
     return "\n".join([head, "-" * len(head)] + [line(row) for row in rows])
 
 
-__all__ = ["MISSING", "cost", "fixed", "markdown_table", "mean_std", "sci", "sig", "signed", "text_table"]
+__all__ = ["MISSING", "cost", "fixed", "markdown_table", "mean_std", "percent", "relative_score", "sci", "sig",
+           "signed", "text_table"]

@@ -32,11 +32,11 @@ from ..assimilation import AssimilationResult
 from ..dataset import Dataset
 from .experiment import BarChart, Experiment, Run, Section, register
 from .figures import MODEL_LABELS, MODEL_ORDER, reconstruction_figure, temporal_error_figure, timing_figure
-from .formatting import MISSING, fixed, sci, sig
+from .formatting import MISSING, fixed, percent, sci, sig
 from .paper import PAPER_DERIVED, PAPER_ENSEMBLE, PAPER_MULTISTEP, PAPER_OPERATOR_NORM
 from .results import Record
 from .tabulate import DEFAULT_SCENARIO, Column, Records, Row, label, max_norm, mse, mse_ratio, over_steps
-from .tabulate import paper_mse, tabulate
+from .tabulate import paper_mse, rel_l2, rel_l2_columns, tabulate
 
 MODELS = MODEL_ORDER  # koopman, pdmd, mlp, xlstm
 NEURAL = ("koopman", "mlp", "xlstm")  # the models sharing the encoder-decoder: only the latent map differs
@@ -110,7 +110,7 @@ class Main(Experiment):
                                                                   initial=initial) for f in ("forward", "ekf")}}
                     for m in MODELS]
             columns = [MODEL, Column("forward run", lambda r: mse(r["forward"])),
-                       Column("EKF", lambda r: mse(r["ekf"])),
+                       Column("EKF", lambda r: mse(r["ekf"])), *rel_l2_columns({"forward": "forward", "ekf": "EKF"}),
                        Column("EKF / forward", lambda r: mse_ratio(r["ekf"], r["forward"])),
                        Column("forward / MLP fwd", lambda r: mse_ratio(r["forward"], r["base"])),
                        Column("EKF / MLP fwd", lambda r: mse_ratio(r["ekf"], r["base"]))]
@@ -142,6 +142,8 @@ class Main(Experiment):
         columns = [MODEL, Column("estimate", lambda r: "forward run" if r["filter"] == "forward" else "EKF"),
                    *[Column(f"{c} (normalized)", lambda r, c=c: sci(r["rec"]["final_channel_nmse_mean"].get(c)))
                      for c in channels],
+                   *[Column(f"{c} rel. L2", lambda r, c=c: percent((r["rec"].get("final_channel_rel_l2_mean") or {})
+                                                                   .get(c)), optional=True) for c in channels],
                    Column("all channels, physical units", lambda r: sci(r["rec"]["final_mse_mean"]))]
         return [Section("Per channel, approximate initial condition", (
             "Final-time MSE of each scored channel divided by that channel's data variance (so that channels in "
@@ -216,6 +218,8 @@ class EnKF(Experiment):
         columns = [MODEL, Column("estimate", lambda r: r["estimate"]),
                    Column("rollout", unless_reference(lambda r: mse(r["rollout"]))),
                    Column("filtered", lambda r: mse(r["filtered"])),
+                   Column("rollout rel. L2 (score)", unless_reference(lambda r: rel_l2(r["rollout"])), optional=True),
+                   *rel_l2_columns({"filtered": "filtered"}),
                    Column("filtered / rollout", unless_reference(lambda r: mse_ratio(r["filtered"], r["rollout"]))),
                    Column("paper rollout", unless_reference(lambda r: paper_mse(bench, r["model"], "forward"))),
                    Column("paper filtered", lambda r: paper_mse(bench, r["model"], r["filter"]))]
@@ -248,6 +252,7 @@ class Calibrated(Experiment):
                    Column("EKF, paper", lambda r: mse(r["paper ekf"])),
                    Column("EKF, calibrated", lambda r: mse(r["ekf"])),
                    Column("calibrated EKF / forward", lambda r: mse_ratio(r["ekf"], r["forward"])),
+                   *rel_l2_columns({"forward": "forward", "ekf": "calibrated EKF", "enkf": "calibrated EnKF"}),
                    Column("EnKF, paper", lambda r: mse(r["paper enkf"])),
                    Column("EnKF, calibrated", lambda r: mse(r["enkf"])),
                    Column("calibrated EnKF / forward", lambda r: mse_ratio(r["enkf"], r["forward"])),

@@ -43,6 +43,15 @@ A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run
                                     channel standardized by its data std (comparable across channels)
     per_step_gain_norm_mean, per_step_spread_mean     [n_t - 1]   (optional) ||K_k||_2 and the filter's spread
                                     sqrt(tr P / r) after each step, mean over trajectories
+    final_rel_l2_mean, final_rel_l2_std   float | null   (optional) the relative L2 error ||x^ - x|| / ||x|| at the
+                                    final frame (the cells, channels and units of Eq. 18; null where the truth
+                                    is 0), mean and sample std over trajectories
+    per_step_rel_l2_mean            [n_t]          (optional) its mean over trajectories at every frame
+    per_trajectory_final_rel_l2     [B]            (optional)
+    final_score_mean                float | null   (optional) 100 (1 - relative L2) at the final frame, mean over
+                                    trajectories (the Common Task Framework's score; negative beyond 1)
+    final_channel_rel_l2_mean       {channel: float}   (optional) the relative L2 error of each scored channel at
+                                    the final frame, mean over trajectories
 
 A record may carry ``protocol_deviations`` ([str]: the protocol fields its run leaves). ``protocol`` is
 optional, so the files of an older dks-gym stay valid under ``schema_version`` 1: it adds to the schema
@@ -61,6 +70,7 @@ from typing import Any, TypedDict
 
 import numpy as np
 
+from ..assimilation import ctf_score
 from ..atomic import atomic_path
 from ..names import ESTIMATORS, FILTERS, MODEL_KINDS
 
@@ -118,6 +128,12 @@ class Record(_RecordKey, total=False):
     final_channel_nmse_mean: dict[str, float | None]
     per_step_gain_norm_mean: list[float | None]
     per_step_spread_mean: list[float | None]
+    final_rel_l2_mean: float | None
+    final_rel_l2_std: float | None
+    per_step_rel_l2_mean: list[float | None]
+    per_trajectory_final_rel_l2: list[float | None]
+    final_score_mean: float | None
+    final_channel_rel_l2_mean: dict[str, float | None]
 
 
 class _DocumentRequired(TypedDict):
@@ -189,9 +205,24 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
         values = getattr(result, name, None)
         if values is not None:
             record[f"per_step_{name}_mean"] = _numbers(np.mean(values, axis=1))
+    if getattr(result, "step_rel_l2", None) is not None:
+        record.update(relative_fields(result.step_rel_l2, result.final_channel_rel_l2, result.channels))
     if keep_curves:
         record["per_trajectory_step_mse"] = _numbers(result.step_mse)
     return record
+
+
+def relative_fields(step_rel_l2: np.ndarray, final_channel_rel_l2: np.ndarray,
+                    channels: Iterable[str]) -> dict[str, Any]:
+    """A record's relative L2 fields from the relative errors of its episodes at every frame (B, n_t) and of
+    each scored channel (``channels``) at the final frame (B, n_scored)."""
+    final = np.asarray(step_rel_l2, dtype=np.float64)[:, -1]
+    return {"final_rel_l2_mean": _number(np.mean(final)),
+            "final_rel_l2_std": _number(np.std(final, ddof=1)) if len(final) > 1 else None,
+            "per_step_rel_l2_mean": _numbers(np.mean(step_rel_l2, axis=0)),
+            "per_trajectory_final_rel_l2": _numbers(final),
+            "final_score_mean": _number(np.mean(ctf_score(final))),
+            "final_channel_rel_l2_mean": {c: _number(v) for c, v in zip(channels, np.mean(final_channel_rel_l2, 0))}}
 
 
 def shared_dataset(identity: dict[str, Any]) -> dict[str, Any]:
@@ -242,6 +273,17 @@ def _check_list(rec: dict[str, Any], name: str, where: str, length: int | None,
         raise ResultsError(f"{where}: {name!r} must be a list of numbers (null for non-finite), got {values!r:.80}")
     if length is not None and len(values) != length:
         raise ResultsError(f"{where}: {name!r} has {len(values)} entries but {what} is {length}")
+
+
+def _check_relative(rec: dict[str, Any], where: str) -> None:
+    """The optional relative L2 fields, where present (records older than them lack them)."""
+    for name in ("final_rel_l2_mean", "final_rel_l2_std", "final_score_mean"):
+        if not _is_number(rec.get(name)):
+            raise ResultsError(f"{where}: {name!r} must be a number or null, got {rec[name]!r}")
+    if "per_trajectory_final_rel_l2" in rec:
+        _check_list(rec, "per_trajectory_final_rel_l2", where, rec["batch"])
+    if "per_step_rel_l2_mean" in rec:
+        _check_list(rec, "per_step_rel_l2_mean", where, len(rec["per_step_mse_mean"]), "the number of frames")
 
 
 def validate_record(rec: Any, where: str = "record") -> None:
@@ -296,7 +338,8 @@ def validate_record(rec: Any, where: str = "record") -> None:
             _check_list(rec, steps, where, None)
             if len(rec[steps]) != len(rec["per_step_mse_mean"]):
                 raise ResultsError(f"{where}: {steps!r} must have one entry per frame, like 'per_step_mse_mean'")
-    for name in ("final_channel_mse_mean", "final_channel_nmse_mean"):
+    _check_relative(rec, where)
+    for name in ("final_channel_mse_mean", "final_channel_nmse_mean", "final_channel_rel_l2_mean"):
         value = rec.get(name)
         if value is not None and (not isinstance(value, dict)
                                   or not all(isinstance(k, str) and _is_number(v) for k, v in value.items())):
@@ -425,6 +468,7 @@ __all__ = [
     "merge",
     "new_results",
     "record_key",
+    "relative_fields",
     "run_key",
     "save_results",
     "select",

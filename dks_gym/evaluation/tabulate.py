@@ -4,6 +4,9 @@ Every experiment's table is ``tabulate(rows, columns)``: ``rows`` are small dict
 table (``{"model": "koopman", "n": 20}``), each :class:`Column` a header and a function of the row. The cells
 look records up in a :class:`Records` view of a results document and print them with
 :mod:`~dks_gym.evaluation.formatting` (DAPPER's ``tabulate_avrgs`` idea: experiments are data, one builder).
+
+A column of a field that only newer records hold (the relative L2 error) is ``optional``: :func:`tabulate`
+leaves it out when every one of its cells is missing or blank, so the tables of older records print as they did.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from .figures import MODEL_LABELS
-from .formatting import MISSING, markdown_table, mean_std, sci, sig
+from .formatting import MISSING, markdown_table, mean_std, relative_score, sci, sig
 from .paper import PAPER_DERIVED, PAPER_FINAL_MSE
 from .results import Record, ResultsDocument, select
 
@@ -50,16 +53,21 @@ class Records:
 
 @dataclass(frozen=True)
 class Column:
-    """One column of a table: its header and the function that makes a row's cell."""
+    """One column of a table: its header, the function that makes a row's cell and whether the table drops
+    it when all its cells are missing (``optional``: a field older records lack)."""
 
     header: str
     cell: Callable[[Row], str]
+    optional: bool = False
 
 
 def tabulate(rows: Iterable[Row], columns: Sequence[Column]) -> str:
-    """A markdown table with one line per row and one cell per column."""
+    """A markdown table with one line per row and one cell per column, less the optional columns without
+    a value (every cell missing or blank)."""
     rows = list(rows)
-    return markdown_table([c.header for c in columns], [[c.cell(row) for c in columns] for row in rows])
+    cells = [[c.cell(row) for row in rows] for c in columns]
+    kept = [i for i, c in enumerate(columns) if not c.optional or any(cell not in (MISSING, "") for cell in cells[i])]
+    return markdown_table([columns[i].header for i in kept], [[cells[i][j] for i in kept] for j in range(len(rows))])
 
 
 def label(row: Row) -> str:
@@ -78,6 +86,18 @@ def mse_ratio(num: Record | None, den: Record | None) -> str:
     if num is None or den is None or not den["final_mse_mean"] or num["final_mse_mean"] is None:
         return MISSING
     return sig(num["final_mse_mean"] / den["final_mse_mean"])
+
+
+def rel_l2(rec: Record | None) -> str:
+    """A record's final relative L2 error, mean over the test trajectories, and its score (``-`` without)."""
+    rec = rec or {}
+    return relative_score(rec.get("final_rel_l2_mean"), rec.get("final_score_mean"))
+
+
+def rel_l2_columns(headers: Mapping[str, str]) -> list[Column]:
+    """Optional columns ``"{header} rel. L2 (score)"`` of the records at the rows' keys (key: header)."""
+    return [Column(f"{name} rel. L2 (score)", lambda r, k=key: rel_l2(r[k]), optional=True)
+            for key, name in headers.items()]
 
 
 def max_norm(rec: Record | None) -> float | None:
@@ -112,5 +132,7 @@ __all__ = [
     "mse_ratio",
     "over_steps",
     "paper_mse",
+    "rel_l2",
+    "rel_l2_columns",
     "tabulate",
 ]

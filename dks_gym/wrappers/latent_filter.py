@@ -9,6 +9,10 @@ with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env
 * observation: ``[mean z (r); log diag P (r)]`` as float32, the filter's belief;
 * ``info["estimate"]``: the decoded mean, ``(C, *grid)`` in physical units; ``info["mse"]``,
   ``info["normalized_mse"]``, ``gain_norm``, ``spread`` and (EKF) ``forecast_norm`` = ||F_k||_2;
+* ``info["relative_l2"]``: ||estimate - truth|| / ||truth|| over the scored channels and every cell (those of
+  the MSE, physical units; NaN where the truth is 0: :func:`~dks_gym.assimilation.relative_l2_errors`),
+  ``info["score"]`` = 100 (1 - relative_l2) (the Common Task Framework's; negative beyond a relative error
+  of 1), ``info["relative_l2_channels"]``: ``{scored channel: its relative L2 error}``;
 * with ``uncertainty=True`` (default) ``info["estimate_std"]``, the predictive std of every cell
   (``(C, *grid)``, physical units: the filter's latent covariance pushed through the decoder, plus the
   decoder's reconstruction variance: ``Uncertainty(reconstruction_var=...)``, else the model's calibrated
@@ -97,6 +101,9 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.estimate = snap.estimate[0].cpu().numpy().astype(np.float32)
         info = dict(info)
         info.update(estimate=self.estimate, mse=float(snap.mse[0]), normalized_mse=float(snap.normalized_mse[0]),
+                    relative_l2=float(snap.relative_l2[0]), score=float(snap.score[0]),
+                    relative_l2_channels=dict(zip(self.env.unwrapped.benchmark.scored_channels,
+                                                  map(float, snap.channel_relative_l2[0]))),
                     latent_mean=snap.latent_mean[0])
         if snap.estimate_std is not None:
             self.estimate_std = snap.estimate_std[0].cpu().numpy().astype(np.float32)

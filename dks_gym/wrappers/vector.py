@@ -31,6 +31,8 @@ class LatentFilterVectorEnv(VectorEnv):
     goes to each :class:`~dks_gym.envs.SensingEnv` (``preset``, ``sensor_mode``, ``noise_level`` ...).
     ``uncertainty`` (default True) puts ``estimate_std`` (N, C, *grid) and the scores ``coverage``, ``nees``,
     ``crps`` (N,) in the infos; ``uncertainty=False`` skips their cost (RL training).
+    The infos hold the single env's keys batched: ``mse``, ``normalized_mse``, ``relative_l2``, ``score`` (N,),
+    ``estimate`` (N, C, *grid) and ``relative_l2_channels`` ``{scored channel: (N,)}``.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
@@ -112,6 +114,8 @@ class LatentFilterVectorEnv(VectorEnv):
             for key in ("mu", "time_index", "trajectory", "sigma", "sensors", "mask")
         }
         infos["mse"], infos["normalized_mse"] = snap.mse, snap.normalized_mse
+        infos["relative_l2"], infos["score"] = snap.relative_l2, snap.score
+        infos["relative_l2_channels"] = dict(zip(self.benchmark.scored_channels, snap.channel_relative_l2.T))
         infos["estimate"] = snap.estimate.cpu().numpy().astype(np.float32)
         if snap.estimate_std is not None:
             infos["estimate_std"] = snap.estimate_std.cpu().numpy().astype(np.float32)
@@ -132,7 +136,8 @@ def _sb3_base():
 
 
 def SB3VecEnv(venv: LatentFilterVectorEnv):  # noqa: N802 - a class factory, so SB3 stays an optional import
-    """Adapt a :class:`LatentFilterVectorEnv` to stable-baselines3's ``VecEnv`` API (dones, list of infos)."""
+    """Adapt a :class:`LatentFilterVectorEnv` to stable-baselines3's ``VecEnv`` API (dones, list of infos: per
+    env ``mse``, ``mu``, ``relative_l2``, ``score``, ``relative_l2_channels`` as the single env has them)."""
     base = _sb3_base()
 
     class _SB3VecEnv(base):
@@ -155,7 +160,8 @@ def SB3VecEnv(venv: LatentFilterVectorEnv):  # noqa: N802 - a class factory, so 
             dones = terminated | truncated
             out = []
             for i in range(self.num_envs):
-                info = {"mse": float(infos["mse"][i]), "mu": float(infos["mu"][i])}
+                info = {name: float(infos[name][i]) for name in ("mse", "mu", "relative_l2", "score")}
+                info["relative_l2_channels"] = {c: float(v[i]) for c, v in infos["relative_l2_channels"].items()}
                 if dones[i]:
                     info["terminal_observation"] = infos["final_obs"][i]
                     info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
