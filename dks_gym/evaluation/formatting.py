@@ -50,8 +50,9 @@ def signed(x: float | None, decimals: int = 3) -> str:
 
 
 def percent(x: float | None) -> str:
-    """A fraction (a relative error) as a percentage with three significant digits (``12.3 %``, ``0.456 %``)."""
-    return f"{sig(100 * x)} %" if _finite(x) else MISSING
+    """A fraction (a relative error) as a percentage with three significant digits, trailing zeros kept so that
+    a column reads evenly (``12.3 %``, ``2.00 %``, ``0.456 %``, ``100 %``)."""
+    return f"{format(100 * x, '#.3g').rstrip('.')} %" if _finite(x) else MISSING
 
 
 def relative_score(relative: float | None, score: float | None) -> str:
