@@ -75,10 +75,11 @@ README_RESULTS = {"Burgers, paper preset": ("burgers", "main"),
 
 
 def test_readme_results_print_the_committed_records_as_every_table_does() -> None:
-    """The results table's numbers are the committed records' final EKF MSE (approximate initial condition)
-    printed by the one formatter (`sci`) the reproduce, demo, placement and compare tables use: the Koopman
-    cell, and the best of the other three models (ties listed together)."""
-    from dks_gym.evaluation.formatting import sci
+    """The results table's numbers are the committed records' final EKF errors (approximate initial condition)
+    printed by the one formatter the reproduce, demo, placement and compare tables use: the relative L2 error
+    with the MSE in brackets (`MSE x` where a record predates the relative error), for Koopman and for the best
+    of the other three models (by relative error where the records have it; ties listed together)."""
+    from dks_gym.evaluation.formatting import percent, sci
     from dks_gym.evaluation.figures import MODEL_LABELS
     from dks_gym.evaluation.results import load_results, select
 
@@ -87,9 +88,19 @@ def test_readme_results_print_the_committed_records_as_every_table_does() -> Non
     assert set(README_RESULTS) <= set(rows)
     for label, (folder, experiment) in README_RESULTS.items():
         doc = load_results(ROOT / "docs" / "results" / folder / "results.json.gz")
-        mse = {m: sci(select(doc, experiment=experiment, model=m, filter="ekf", initial="approximate")[0]
-                      ["final_mse_mean"]) for m in ("koopman", "pdmd", "mlp", "xlstm")}
-        others = {m: v for m, v in mse.items() if m != "koopman"}
-        best = min(others.values(), key=float)
-        expected = f"{', '.join(MODEL_LABELS[m] for m, v in others.items() if v == best)} {best}"
-        assert rows[label][1:3] == [mse["koopman"], expected], label
+        recs = {m: select(doc, experiment=experiment, model=m, filter="ekf", initial="approximate")[0]
+                for m in ("koopman", "pdmd", "mlp", "xlstm")}
+        relative = all(r.get("final_rel_l2_mean") is not None for r in recs.values())
+
+        def cell(rec: dict) -> str:
+            mse = sci(rec["final_mse_mean"])
+            return f"{percent(rec['final_rel_l2_mean'])} ({mse})" if relative else f"MSE {mse}"
+
+        def key(rec: dict) -> float:  # the printed value, so that equal prints tie
+            return float(percent(rec["final_rel_l2_mean"])[:-2]) if relative else float(sci(rec["final_mse_mean"]))
+
+        others = {m: r for m, r in recs.items() if m != "koopman"}
+        best = min(key(r) for r in others.values())
+        ties = [m for m, r in others.items() if key(r) == best]
+        expected = f"{', '.join(MODEL_LABELS[m] for m in ties)} {cell(others[ties[0]])}"
+        assert rows[label][1:3] == [cell(recs["koopman"]), expected], label
