@@ -350,7 +350,13 @@ class Noise(Experiment):
             rec = records.find(model=row["model"], filter="ekf", **_scenario(noise=s))
             return f"{mse(rec)} ({mse_ratio(rec, records.base(**_scenario(noise=s)))})"
 
-        columns = [MODEL, *[Column(f"{int(round(100 * s))}%", lambda r, s=s: cell(r, s)) for s in (0.1, 0.2, 0.3)]]
+        def relative(row: Row, s: float) -> str:
+            return rel_l2(records.find(model=row["model"], filter="ekf", **_scenario(noise=s)))
+
+        levels = (0.1, 0.2, 0.3)
+        columns = [MODEL, *[Column(f"{int(round(100 * s))}%", lambda r, s=s: cell(r, s)) for s in levels],
+                   *[Column(f"{int(round(100 * s))}%: rel. L2 (score)", lambda r, s=s: relative(r, s), optional=True)
+                     for s in levels]]
         return [Section("Measurement noise (Fig. 10): EKF final MSE (÷ MLP forward run)",
                         (tabulate([{"model": m} for m in MODELS], columns),))]
 
@@ -382,7 +388,7 @@ class Latent(Experiment):
 
     def tables(self, records: Records) -> list[Section]:
         columns = [Column("r", lambda r: str(r["r"])), MODEL, Column("forward run", lambda r: mse(r["forward"])),
-                   Column("EKF", lambda r: mse(r["ekf"])),
+                   Column("EKF", lambda r: mse(r["ekf"])), *rel_l2_columns({"forward": "forward", "ekf": "EKF"}),
                    Column("EKF / MLP fwd (same r)", lambda r: mse_ratio(r["ekf"], r["base"]))]
         return [Section("Latent dimension (Fig. 11)",
                         (tabulate(_varied_rows(records, "r", (16, 32, 64), MODELS), columns),))]
@@ -405,7 +411,7 @@ class Multistep(Experiment):
         paper = PAPER_MULTISTEP.get(records.benchmark, PAPER_MULTISTEP["cylinder"])
         which = "paper" if records.benchmark in PAPER_MULTISTEP else "paper (cylinder)"
         columns = [Column("T", lambda r: str(r["T"])), MODEL, Column("forward run", lambda r: mse(r["forward"])),
-                   Column("EKF", lambda r: mse(r["ekf"])),
+                   Column("EKF", lambda r: mse(r["ekf"])), *rel_l2_columns({"forward": "forward", "ekf": "EKF"}),
                    Column("EKF / MLP fwd (same T)", lambda r: mse_ratio(r["ekf"], r["base"])),
                    Column(f"{which} forward / EKF", lambda r: " / ".join(
                        sci(paper.get((r["model"], f), {}).get(r["T"])) for f in ("forward", "ekf")))]

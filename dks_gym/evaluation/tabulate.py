@@ -42,9 +42,10 @@ class Records:
         return select(self.doc, **criteria)
 
     def find(self, **criteria: Any) -> Record | None:
-        """The first record matching ``criteria`` in any experiment (experiments repeat identical runs)."""
+        """The record matching ``criteria`` in any experiment (experiments repeat identical runs): of several,
+        the one with the most fields (a rerun's, whose newer fields an older copy lacks), else the first."""
         found = self.select(**criteria)
-        return found[0] if found else None
+        return max(found, key=len) if found else None
 
     def base(self, **criteria: Any) -> Record | None:
         """The MLP forward run of a scenario: what the paper's bar charts divide by."""
