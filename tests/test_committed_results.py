@@ -55,3 +55,27 @@ def test_no_uncompressed_results_files_are_committed() -> None:
 def test_the_committed_results_weigh_at_most_15_mb() -> None:
     total = sum(p.stat().st_size for p in RESULTS.rglob("*") if p.is_file())
     assert total <= MAX_RESULTS_BYTES, f"docs/results holds {total / 1e6:.1f} MB (at most 15 MB)"
+
+
+#: The results READMEs that lead with the relative L2 error: their first table, rebuilt from the records here.
+LEAD_TABLES = ("burgers-lite-calibrated", "cylinder", "dambreak")
+LEAD_HEADER = "| model | forward run | EKF | EnKF n = 20 | calibrated EKF | calibrated EnKF |"
+
+
+@pytest.mark.parametrize("name", LEAD_TABLES)
+def test_the_results_readmes_lead_with_the_records_relative_errors(name: str) -> None:
+    """Each README's relative-L2 table equals the committed records' final relative L2 (approximate IC)
+    printed as the tables print it, so the prose cannot drift from the results."""
+    from dks_gym.evaluation.formatting import percent
+
+    doc = load_results(RESULTS / name / "results.json.gz")
+    lines = (RESULTS / name / "README.md").read_text().splitlines()
+    start = lines.index(LEAD_HEADER)
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[start + 2:start + 6]]
+    runs = (("main", "forward", {"initial": "approximate"}), ("main", "ekf", {"initial": "approximate"}),
+            ("enkf", "enkf", {}), ("calibrated", "ekf", {}), ("calibrated", "enkf", {}))
+    for row, model in zip(rows, ("koopman", "pdmd", "mlp", "xlstm")):
+        expected = [percent(next(r for r in doc["records"] if r["experiment"] == e and r["model"] == model
+                                 and r["filter"] == f and all(r[k] == v for k, v in c.items()))["final_rel_l2_mean"])
+                    for e, f, c in runs]
+        assert row[1:] == expected, (name, model)
