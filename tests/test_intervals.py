@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from dks_gym.evaluation.intervals import interval, iqm, strata_of
+from dks_gym.evaluation.intervals import interval, interval_fields, iqm, strata_of
 
 
 def test_iqm_is_the_mean_of_the_middle_half() -> None:
@@ -74,3 +76,28 @@ def test_the_95_percent_interval_covers_the_true_mean_about_95_percent_of_the_ti
             low, high = interval(values, n_resamples=999, seed=seed)
         hits += low <= truth <= high
     assert 0.90 <= hits / n_sets <= 0.99, f"coverage {hits / n_sets:.3f}"
+
+
+def test_records_validate_their_interval_fields_and_the_migration_adds_them(tmp_path) -> None:
+    from dks_gym.evaluation.migrate import add_intervals, main
+    from dks_gym.evaluation.results import ResultsError, load_results, save_results, validate_record
+
+    committed = Path(__file__).resolve().parents[1] / "docs/results/placement/burgers/koopman-paper/placement.json.gz"
+    doc = load_results(committed)
+    record = doc["records"][0]
+    assert record["final_mse_ci95"][0] <= record["final_mse_mean"] <= record["final_mse_ci95"][1]
+    assert record["time_mean_mse_ci95"][0] <= record["time_mean_mse_mean"] <= record["time_mean_mse_ci95"][1]
+    for bad in ([1.0], [2.0, 1.0], "x", [None, 1.0]):
+        with pytest.raises(ResultsError, match="final_mse_ci95"):
+            validate_record({**record, "final_mse_ci95": bad})
+    with pytest.raises(ResultsError, match="final_mse_iqm"):
+        validate_record({**record, "final_mse_iqm": "x"})
+    stored = {k: record.pop(k) for k in list(record) if k.endswith(("_iqm", "_ci95"))}
+    validate_record(record)  # absent is fine
+    save_results(doc, tmp_path / "placement.json.gz")
+    assert main([str(tmp_path)]) == 0
+    migrated = load_results(tmp_path / "placement.json.gz")["records"][0]
+    fresh = interval_fields(record)  # not the stored values: another scipy may draw differently
+    assert set(fresh) == set(stored) and all(migrated[k] == fresh[k] for k in stored)
+    assert add_intervals({"records": [dict(migrated, final_mse_ci95=[0.0, 1.0])]})["records"][0][
+        "final_mse_ci95"] == [0.0, 1.0]  # what a record holds stays

@@ -101,4 +101,42 @@ def strata_of(trajectories: Sequence[int] | None) -> list[int] | None:
     return list(trajectories)
 
 
-__all__ = ["N_RESAMPLES", "STATISTICS", "interval", "iqm", "strata_of"]
+#: The aggregates a record's intervals summarize: (field prefix, the per-episode field they are computed from).
+INTERVAL_SOURCES = (("final_mse", "per_trajectory_final_mse"), ("final_rel_l2", "per_trajectory_final_rel_l2"),
+                    ("time_mean_mse", "per_trajectory_time_mean_mse"))
+
+
+def interval_fields(record: dict[str, Any]) -> dict[str, Any]:
+    """A record's ``{prefix}_iqm`` and ``{prefix}_ci95`` (the 95 % interval of the mean, ``[low, high]``)
+    for each per-episode field of :data:`INTERVAL_SOURCES` it holds, from the stored values, stratified by
+    trajectory when its trajectories repeat (:func:`strata_of`); ``None`` where undefined."""
+    out: dict[str, Any] = {}
+    strata = strata_of(record.get("trajectories"))
+    for prefix, source in INTERVAL_SOURCES:
+        if record.get(source) is None:
+            continue
+        finite = [v for v in record[source] if v is not None and np.isfinite(v)]
+        bounds = interval(record[source], strata)
+        out[f"{prefix}_iqm"] = iqm(finite) if finite else None
+        out[f"{prefix}_ci95"] = None if bounds is None else list(bounds)
+    return out
+
+
+def interval_problem(record: dict[str, Any]) -> str | None:
+    """What is malformed in a record's optional interval fields (absent is fine), or ``None``."""
+    for prefix, _ in INTERVAL_SOURCES:
+        value = record.get(f"{prefix}_iqm")
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                  or not np.isfinite(value)):
+            return f"{prefix + '_iqm'!r} must be a number or null, got {value!r}"
+        bounds = record.get(f"{prefix}_ci95")
+        if bounds is not None and not (
+                isinstance(bounds, list) and len(bounds) == 2
+                and all(isinstance(b, (int, float)) and not isinstance(b, bool) and np.isfinite(b) for b in bounds)
+                and bounds[0] <= bounds[1]):
+            return f"{prefix + '_ci95'!r} must be null or [low, high] with low <= high, got {bounds!r:.80}"
+    return None
+
+
+__all__ = ["INTERVAL_SOURCES", "N_RESAMPLES", "STATISTICS", "interval", "interval_fields", "interval_problem",
+           "iqm", "strata_of"]
