@@ -101,3 +101,19 @@ def test_records_validate_their_interval_fields_and_the_migration_adds_them(tmp_
     assert set(fresh) == set(stored) and all(migrated[k] == fresh[k] for k in stored)
     assert add_intervals({"records": [dict(migrated, final_mse_ci95=[0.0, 1.0])]})["records"][0][
         "final_mse_ci95"] == [0.0, 1.0]  # what a record holds stays
+
+
+def test_tables_print_the_stored_interval_and_drop_its_column_for_older_records() -> None:
+    from dks_gym.evaluation.formatting import interval as shown
+    from dks_gym.evaluation.reproduce import tables_markdown
+    from dks_gym.evaluation.results import load_results
+    from dks_gym.evaluation.tabulate import mse_ci95
+
+    assert shown(0.0123, 1234.0) == "[0.0123, 1.23e+03]" and shown(None, 1.0) == "-"
+    doc = load_results(Path(__file__).resolve().parents[1] / "docs/results/burgers-lite/results.json.gz")
+    ekf = next(r for r in doc["records"] if r["experiment"] == "main" and r["filter"] == "ekf")
+    assert mse_ci95(dict(ekf, final_mse_ci95=[1.0, 2.0])) == "[1, 2]"  # stored, not recomputed
+    assert mse_ci95(ekf) in tables_markdown(doc) and "EKF 95 % CI" in tables_markdown(doc)
+    for record in doc["records"]:
+        record.pop("final_mse_ci95", None)
+    assert "EKF 95 % CI" not in tables_markdown(doc)
