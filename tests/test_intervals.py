@@ -117,3 +117,28 @@ def test_tables_print_the_stored_interval_and_drop_its_column_for_older_records(
     for record in doc["records"]:
         record.pop("final_mse_ci95", None)
     assert "EKF 95 % CI" not in tables_markdown(doc)
+
+
+def test_the_placement_ranking_states_each_paired_interval_and_whether_it_includes_zero() -> None:
+    from dks_gym_agents.paired import add_paired_intervals, paired_vs_random
+    from dks_gym_agents.tables import ranked_table
+
+    from dks_gym.evaluation.results import load_results
+
+    path = Path(__file__).resolve().parents[1] / "docs/results/placement/burgers/koopman-paper/placement.json.gz"
+    doc = load_results(path)
+    table = ranked_table(doc)
+    assert "its 95 % CI (bootstrap)" in table and " better |" in table and " worse |" in table
+    fresh = paired_vs_random(doc, intervals=True)
+    for record in doc["records"]:
+        stored = record["paired_vs_random"]["log_ratio_ci95"]
+        assert stored[0] <= record["paired_vs_random"]["log_ratio_mean"] <= stored[1]
+        assert fresh[record["policy"]]["log_ratio_ci95"] is not None
+        record["paired_vs_random"]["log_ratio_ci95"] = [-1.0, 2.0]  # tables print what is stored
+    assert "[-1.000, +2.000] includes 0" in ranked_table(doc)
+    assert add_paired_intervals(doc)["records"][0]["paired_vs_random"]["log_ratio_ci95"] == [-1.0, 2.0]
+    for record in doc["records"]:
+        del record["paired_vs_random"]["log_ratio_ci95"]
+    assert "95 % CI" not in ranked_table(doc)  # older documents print as they did
+    add_paired_intervals(doc)
+    assert all(r["paired_vs_random"]["log_ratio_ci95"] == fresh[r["policy"]]["log_ratio_ci95"] for r in doc["records"])

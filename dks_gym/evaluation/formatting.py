@@ -11,7 +11,7 @@ score 100 (1 - relative L2) (:func:`relative_score`); a confidence interval as `
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 MISSING = "-"
 
@@ -34,9 +34,10 @@ def mean_std(mean: float | None, std: float | None, *, missing: str = MISSING) -
     return sci(mean) if std is None else f"{sci(mean)} ± {sci(std)}"
 
 
-def interval(low: float | None, high: float | None) -> str:
-    """A confidence interval ``[low, high]`` with :func:`sci` (``[0.0123, 0.0456]``); ``-`` if either is missing."""
-    return f"[{sci(low)}, {sci(high)}]" if _finite(low) and _finite(high) else MISSING
+def interval(low: float | None, high: float | None, fmt: Callable[[float | None], str] = sci) -> str:
+    """A confidence interval ``[low, high]``, its bounds printed by ``fmt`` (:func:`sci`: ``[0.0123, 0.0456]``;
+    :func:`signed` for a log ratio); ``-`` if either is missing."""
+    return f"[{fmt(low)}, {fmt(high)}]" if _finite(low) and _finite(high) else MISSING
 
 
 def sig(x: float | None, digits: int = 3) -> str:
