@@ -11,7 +11,7 @@ The resampling is :func:`scipy.stats.bootstrap`'s; this module only arranges the
   single value has nothing to resample (scipy refuses a sample of one); it enters every resample as it is.
   Without strata the episodes are one sample, resampled as a whole. Like every bootstrap, the interval is
   narrow by about sqrt((n - 1) / n) for n values per sample, which matters within small strata: with three
-  noise seeds per trajectory a nominal 95 % interval covers nearer 85 %; read it as a lower bound on the
+  noise seeds per trajectory a nominal 95 % interval covers about 88 % (simulated); read it as a lower bound on the
   uncertainty there.
 * **Method.** The percentile interval (``method="percentile"``), as rliable uses for its stratified bootstrap:
   BCa's acceleration needs a jackknife of every sample, which fails for strata of one or two values and for
