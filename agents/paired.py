@@ -8,8 +8,10 @@ from typing import Any
 
 import numpy as np
 
+from dks_gym.evaluation.intervals import interval, strata_of
 
-def paired_vs_random(doc: dict[str, Any]) -> dict[str, dict[str, Any]]:
+
+def paired_vs_random(doc: dict[str, Any], *, intervals: bool = False) -> dict[str, dict[str, Any]]:
     """Per policy: its time-averaged MSE against the mean of the random layouts on the same episode.
 
     For every episode e (trajectory x noise seed), ``q_e = log(MSE_policy(e) / mean_s MSE_random-s(e))``,
@@ -22,7 +24,11 @@ def paired_vs_random(doc: dict[str, Any]) -> dict[str, dict[str, Any]]:
     ``log_ratio_geometric_mean``/``_se``: the same against the per-episode *geometric* mean of the random
     layouts, i.e. the average paired log ratio against each random layout (the arithmetic mean is pulled up
     by the worst random layouts, so a typical random layout itself scores below 0 against it).
-    Negative log ratios beat random. Empty without at least two random layouts. Works on any document
+    Negative log ratios beat random. With ``intervals``, also ``log_ratio_ci95``: the 95 % bootstrap interval
+    ``[low, high]`` of ``log_ratio_mean``, resampled within trajectories when they repeat (noise seeds;
+    :func:`~dks_gym.evaluation.intervals.interval`), null with one episode; an interval below 0 beats random,
+    one that includes 0 does not decide. Tables print the stored interval (:func:`add_paired_vs_random`).
+    Empty without at least two random layouts. Works on any document
     from :func:`placement_document` (e.g. a committed ``placement.json.gz``), old ones included.
     """
     recs = [r for r in doc["records"] if r["experiment"].startswith("placement/")]
@@ -55,16 +61,33 @@ def paired_vs_random(doc: dict[str, Any]) -> dict[str, dict[str, Any]]:
             "ratio_mean": float(np.exp(q).mean()), "wins": int(np.sum(a < ref)), "n_episodes": n,
             "n_trajectories": int(len(per_traj)), "n_random": len(randoms) - (own is not None),
         }
+        if intervals:
+            bounds = interval(q, strata_of([int(t) for t in traj]))
+            out[rec["policy"]]["log_ratio_ci95"] = None if bounds is None else list(bounds)
     return out
 
 
 def add_paired_vs_random(doc: dict[str, Any]) -> dict[str, Any]:
-    """Store :func:`paired_vs_random` in each record as ``paired_vs_random`` (in place); returns ``doc``."""
-    paired = paired_vs_random(doc)
+    """Store :func:`paired_vs_random` (with its intervals) in each record as ``paired_vs_random`` (in place);
+    returns ``doc``."""
+    paired = paired_vs_random(doc, intervals=True)
     for rec in doc["records"]:
         if rec.get("policy") in paired:
             rec["paired_vs_random"] = paired[rec["policy"]]
     return doc
 
 
-__all__ = ["add_paired_vs_random", "paired_vs_random"]
+def add_paired_intervals(doc: dict[str, Any]) -> dict[str, Any]:
+    """Give each stored ``paired_vs_random`` block the ``log_ratio_ci95`` it lacks, leaving the rest as it is
+    (a migration of committed documents: an interval it holds is kept); in place, returns ``doc``."""
+    blocks = [rec["paired_vs_random"] for rec in doc["records"]
+              if isinstance(rec.get("paired_vs_random"), dict) and "log_ratio_ci95" not in rec["paired_vs_random"]]
+    if blocks:
+        paired = paired_vs_random(doc, intervals=True)
+        for rec in doc["records"]:
+            if rec.get("policy") in paired and isinstance(rec.get("paired_vs_random"), dict):
+                rec["paired_vs_random"].setdefault("log_ratio_ci95", paired[rec["policy"]]["log_ratio_ci95"])
+    return doc
+
+
+__all__ = ["add_paired_intervals", "add_paired_vs_random", "paired_vs_random"]

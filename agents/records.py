@@ -6,7 +6,9 @@ one record per policy with ``experiment = "placement/<policy>"``, plus the place
 ``time_mean_mse_mean``/``_std``, ``per_trajectory_time_mean_mse``, ``fit_seconds`` (fitting here),
 ``offline_seconds`` (the offline cost: fitting plus the training recorded in a loaded agent checkpoint),
 ``decision_seconds`` (wall time per decision: per episode for static layouts, per step and trajectory for
-adaptive ones) and ``policy_config``. A ``placement/forward`` record (no assimilation) is the reference.
+adaptive ones), ``policy_config`` and the interval fields of the time-averaged MSE (``time_mean_mse_iqm``,
+``time_mean_mse_ci95``: :func:`~dks_gym.evaluation.intervals.interval_fields`, stratified by trajectory).
+A ``placement/forward`` record (no assimilation) is the reference.
 Records keep each trajectory's final and time-averaged MSE and the mean curve over time, not every
 trajectory's curve: no ranking, interval or figure reads those, and they were most of a committed file.
 The document names the benchmark's protocol (:func:`~dks_gym.evaluation.conformance.stamp_protocol`).
@@ -26,6 +28,7 @@ import torch
 
 from dks_gym.assimilation import AssimilationResult
 from dks_gym.evaluation.conformance import stamp_protocol
+from dks_gym.evaluation.intervals import interval_fields
 from dks_gym.evaluation.results import make_record, new_results
 
 from .policies import PlacementPolicy, PlacementTask
@@ -65,6 +68,7 @@ def _record(pr: PolicyResult) -> dict[str, Any]:
         decision_seconds=float(pr.decision_seconds), policy_config=pr.policy.describe(),
         noise_seeds=[int(s) for s in pr.result.extras["noise_seeds"]],
     )
+    rec.update(interval_fields(rec))  # the time-averaged MSE's too, now that the record holds it
     if pr.policy.adaptive:
         cells, counts = np.unique(pr.layouts, return_counts=True)
         rec["sensors"] = None
@@ -92,6 +96,7 @@ def placement_document(task: PlacementTask, results: Sequence[PolicyResult], for
                    per_trajectory_time_mean_mse=[float(v) for v in tm], fit_seconds=None, offline_seconds=None,
                    decision_seconds=None,
                    policy_config={"name": "forward", "note": "no assimilation: the open-loop model, sensors unused"})
+        rec.update(interval_fields(rec))
         records.append(rec)
     seeds = sorted({int(s) for s in results[0].result.extras["noise_seeds"]})
     config = dict(task.config.as_record(), n_test=ds.n_trajectories(task.config.split), n_frames=ds.n_frames,

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from dks_gym.assimilation import field_errors, relative_l2_errors
+from dks_gym.evaluation.intervals import interval_fields
 from dks_gym.evaluation.results import UNCERTAINTY_SCORES, relative_fields
 from dks_gym.models.shred import Shred, ShredConfig, read_episodes
 
@@ -74,6 +75,7 @@ def evaluate_shred(task: PlacementTask, pr: PolicyResult, noise_seeds: Sequence[
         "noise_seeds": [int(s) for s in seeds], "pod_floor_time_mean_mse": float(floor),
         **relative_fields(relative, per_channel[:, -1], task.benchmark.scored_channels),
     }
+    rec.update(interval_fields(rec))
     return rec
 
 

@@ -10,16 +10,18 @@ per-episode (paired) ratio to the paper layout, the paired comparison with the r
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from dks_gym.envs import SensorFaults
-from dks_gym.evaluation.formatting import cost, fixed, markdown_table, mean_std, relative_score, sci, signed
+from dks_gym.evaluation.formatting import (cost, fixed, interval, markdown_table, mean_std, relative_score, sci,
+                                           signed)
 from dks_gym.evaluation.results import load_results, save_results
 
-from .paired import add_paired_vs_random, paired_vs_random
+from .paired import add_paired_intervals, add_paired_vs_random, paired_vs_random
 from .records import PLACEMENT_FILE
 
 RANKED_HEADER = ("rank", "policy", "time-avg MSE (mean ± std)", "final MSE (mean ± std)",
@@ -44,6 +46,23 @@ def _versus_random(paired: dict[str, Any] | None) -> list[str]:
         return ["-", "-"]
     return [f"{signed(paired['log_ratio_mean'])} ± {fixed(paired['log_ratio_se'])}",
             f"{paired['wins']}/{paired['n_episodes']}"]
+
+
+def _random_interval(rec: dict[str, Any]) -> str:
+    """The stored 95 % bootstrap interval of the paired log ratio to random (never recomputed here: another
+    scipy may draw differently) and what it decides: better or worse than random, or undecided (includes 0)."""
+    bounds = (rec.get("paired_vs_random") or {}).get("log_ratio_ci95")
+    if bounds is None:
+        return "-"
+    verdict = "better" if bounds[1] < 0 else "worse" if bounds[0] > 0 else "includes 0"
+    return f"{interval(*bounds, fmt=signed)} {verdict}"
+
+
+INTERVAL_NOTE = ("95 % CI: the percentile bootstrap interval of the mean paired log ratio to random "
+                 "(scipy.stats.bootstrap, resampled within each trajectory when it has several noise seeds: the test "
+                 "trajectories held fixed), as "
+                 "stored in placement.json.gz; 'better' (below 0) or 'worse' (above 0) than the random mean, or "
+                 "'includes 0': the episodes do not decide.")
 
 
 def _ranked_notes(doc: dict[str, Any], paired: dict[str, dict[str, Any]]) -> list[str]:
@@ -85,32 +104,52 @@ def ranked_table(doc: dict[str, Any]) -> str:
     paper = next((r for r in recs if r["policy"] == "paper"), None)
     forward = next((r for r in recs if r["policy"] == "forward"), None)
     paired = paired_vs_random(doc)
-    # Records older than the relative L2 error lack it: their table prints as it did, without its column.
+    # Records older than the relative L2 error or the intervals lack them: their table prints as it did.
     relative = any(r.get("final_rel_l2_mean") is not None for r in recs)
+    intervals = any((r.get("paired_vs_random") or {}).get("log_ratio_ci95") is not None for r in recs)
 
     def errors(rec: dict[str, Any]) -> list[str]:
         rel = [relative_score(rec.get("final_rel_l2_mean"), rec.get("final_score_mean"))] if relative else []
+        versus = _versus_random(paired.get(rec["policy"]))
         return [mean_std(rec["time_mean_mse_mean"], rec["time_mean_mse_std"]),
-                mean_std(rec["final_mse_mean"], rec["final_mse_std"]), *rel,
-                *_versus_paper(rec, paper), *_versus_random(paired.get(rec["policy"]))]
+                mean_std(rec["final_mse_mean"], rec["final_mse_std"]), *rel, *_versus_paper(rec, paper),
+                versus[0], *([_random_interval(rec)] if intervals else []), versus[1]]
 
     rows = [[str(i), rec["policy"] + (" (adaptive)" if rec.get("adaptive") else ""), *errors(rec),
              cost(rec.get("offline_seconds"), 1, " s"), cost(rec.get("decision_seconds"), 1e3, " ms")]
             for i, rec in enumerate(policies, 1)]
     if forward is not None:
         rows.append(["-", "forward run (no sensors)", *errors(forward), "-", "-"])
-    header = (*RANKED_HEADER[:4], "final rel. L2 (score)", *RANKED_HEADER[4:]) if relative else RANKED_HEADER
-    return "\n".join([markdown_table(header, rows), *_ranked_notes(doc, paired)]) + "\n"
+    header = (*RANKED_HEADER[:4], *(["final rel. L2 (score)"] if relative else []), *RANKED_HEADER[4:7],
+              *(["its 95 % CI (bootstrap)"] if intervals else []), *RANKED_HEADER[7:])
+    notes = _ranked_notes(doc, paired) + ([INTERVAL_NOTE] if intervals else [])
+    return "\n".join([markdown_table(header, rows), *notes]) + "\n"
 
 
 def rewrite_tables(folder: str | Path) -> Path:
     """Recompute ``paired_vs_random`` and ``placement.md`` of a finished run from its ``placement.json.gz``
     (no filter runs): ``python -c "from dks_gym_agents.tables import rewrite_tables; rewrite_tables('DIR')"``."""
     folder = Path(folder)
-    doc = add_paired_vs_random(load_results(folder / PLACEMENT_FILE))
+    doc = add_paired_vs_random(load_results(folder / PLACEMENT_FILE))  # with its intervals
     save_results(doc, folder / PLACEMENT_FILE)
     (folder / "placement.md").write_text(ranked_table(doc))
     return folder / "placement.md"
+
+
+def migrate_intervals(folder: str | Path) -> list[Path]:
+    """Give the placement documents under ``folder`` the paired intervals they lack
+    (:func:`~dks_gym_agents.paired.add_paired_intervals`; the records' own intervals come from
+    ``python -m dks_gym.evaluation.migrate``) and rewrite their ``placement.md``; return the documents changed:
+    ``python -c "from dks_gym_agents.tables import migrate_intervals; migrate_intervals('DIR')"``."""
+    changed = []
+    for path in sorted(Path(folder).rglob(PLACEMENT_FILE)):
+        doc = load_results(path)
+        before = json.dumps(doc)
+        if json.dumps(add_paired_intervals(doc)) != before:
+            save_results(doc, path)
+            changed.append(path)
+        (path.parent / "placement.md").write_text(ranked_table(doc))
+    return changed
 
 
 def budget_rows(docs: dict[int, dict[str, Any]]) -> dict[str, dict[int, dict[str, Any]]]:
@@ -165,4 +204,4 @@ def budget_table(docs: dict[int, dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["budget_rows", "budget_table", "describe_faults", "ranked_table", "rewrite_tables"]
+__all__ = ["budget_rows", "budget_table", "describe_faults", "migrate_intervals", "ranked_table", "rewrite_tables"]

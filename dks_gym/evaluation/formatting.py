@@ -5,13 +5,13 @@ Errors and other scores print with three significant digits (:func:`sci`): plain
 in scientific notation outside (``1.29e+03``, ``3.90e-04``); a missing or non-finite value prints as ``-``.
 Ratios and times print with three significant digits (:func:`sig`), fractions with fixed decimals, log
 ratios with their sign (:func:`signed`); a relative L2 error as a percentage (:func:`percent`) beside its
-score 100 (1 - relative L2) (:func:`relative_score`).
+score 100 (1 - relative L2) (:func:`relative_score`); a confidence interval as ``[low, high]`` (:func:`interval`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 MISSING = "-"
 
@@ -32,6 +32,12 @@ def mean_std(mean: float | None, std: float | None, *, missing: str = MISSING) -
     if mean is None:
         return missing
     return sci(mean) if std is None else f"{sci(mean)} ± {sci(std)}"
+
+
+def interval(low: float | None, high: float | None, fmt: Callable[[float | None], str] = sci) -> str:
+    """A confidence interval ``[low, high]``, its bounds printed by ``fmt`` (:func:`sci`: ``[0.0123, 0.0456]``;
+    :func:`signed` for a log ratio); ``-`` if either is missing."""
+    return f"[{fmt(low)}, {fmt(high)}]" if _finite(low) and _finite(high) else MISSING
 
 
 def sig(x: float | None, digits: int = 3) -> str:
@@ -86,5 +92,5 @@ def text_table(header: Sequence[str], rows: Sequence[Sequence[str]], widths: Seq
     return "\n".join([head, "-" * len(head)] + [line(row) for row in rows])
 
 
-__all__ = ["MISSING", "cost", "fixed", "markdown_table", "mean_std", "percent", "relative_score", "sci", "sig",
-           "signed", "text_table"]
+__all__ = ["MISSING", "cost", "fixed", "interval", "markdown_table", "mean_std", "percent", "relative_score", "sci",
+           "sig", "signed", "text_table"]

@@ -1,10 +1,14 @@
-"""``python -m dks_gym.evaluation.migrate PATH...``: name the protocol in results files of an older dks-gym.
+"""``python -m dks_gym.evaluation.migrate PATH...``: bring results files of an older dks-gym up to date.
 
 Each results document given, or found under a folder given (``results.json.gz``, ``placement.json.gz`` and
 their plain ``.json`` forms), is loaded, stamped with its benchmark's protocol
 (:func:`~dks_gym.evaluation.conformance.stamp_protocol`: the protocol block, the records that leave it
-marked) and written back byte-reproducibly when that changed it; nothing else in the file changes. A file
-that names a protocol already is stamped again (the same bytes unless the protocol's fields changed).
+marked), given the interval fields its records lack (:func:`add_intervals`: the interquartile mean and the
+95 % bootstrap interval, computed from the per-episode values the records store) and written back
+byte-reproducibly when that changed it; nothing else in the file changes. A file that names a protocol
+already is stamped again (the same bytes unless the protocol's fields changed); interval fields a record
+holds are kept as they are (a bootstrap may draw differently under another scipy), so a second run changes
+nothing.
 """
 
 from __future__ import annotations
@@ -14,7 +18,10 @@ import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+from typing import Any
+
 from .conformance import stamp_protocol
+from .intervals import INTERVAL_SOURCES, interval_fields
 from .results import RESULTS_FILE, load_results, save_results
 
 #: The names results documents go by: reproduce's and the demo's, and the placement harness's
@@ -35,10 +42,22 @@ def results_files(paths: Iterable[str | Path]) -> list[Path]:
     return list(dict.fromkeys(out))
 
 
+def add_intervals(doc: dict[str, Any]) -> dict[str, Any]:
+    """Give each record the interval fields it lacks (:func:`~dks_gym.evaluation.intervals.interval_fields`,
+    from its stored per-episode values), appended after its other fields; those it holds stay. In place."""
+    for record in doc["records"]:
+        wanted = [f"{prefix}_{kind}" for prefix, source in INTERVAL_SOURCES if record.get(source) is not None
+                  for kind in ("iqm", "ci95")]
+        if any(name not in record for name in wanted):
+            for name, value in interval_fields(record).items():
+                record.setdefault(name, value)
+    return doc
+
+
 def migrate_file(path: str | Path) -> bool:
-    """Stamp the protocol into one results file; return whether the file changed."""
+    """Stamp the protocol into one results file and add its missing intervals; return whether it changed."""
     doc = load_results(path)
-    stamped = stamp_protocol(copy.deepcopy(doc))
+    stamped = add_intervals(stamp_protocol(copy.deepcopy(doc)))
     if stamped == doc and list(stamped) == list(doc):
         return False
     save_results(stamped, path)
@@ -59,12 +78,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     files = results_files(args)
     changed = [path for path in files if migrate_file(path)]
     for path in changed:
-        print(f"stamped {path}")
+        print(f"migrated {path}")
     print(f"{len(changed)} of {len(files)} results files changed")
     return 0
 
 
-__all__ = ["RESULTS_NAMES", "main", "migrate", "migrate_file", "results_files"]
+__all__ = ["RESULTS_NAMES", "add_intervals", "main", "migrate", "migrate_file", "results_files"]
 
 if __name__ == "__main__":
     sys.exit(main())

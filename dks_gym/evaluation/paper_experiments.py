@@ -36,7 +36,7 @@ from .formatting import MISSING, fixed, percent, sci, sig
 from .paper import PAPER_DERIVED, PAPER_ENSEMBLE, PAPER_MULTISTEP, PAPER_OPERATOR_NORM
 from .results import Record
 from .tabulate import DEFAULT_SCENARIO, Column, Records, Row, label, max_norm, mse, mse_ratio, over_steps
-from .tabulate import paper_mse, rel_l2, rel_l2_columns, tabulate
+from .tabulate import mse_ci95, paper_mse, rel_l2, rel_l2_columns, tabulate
 
 MODELS = MODEL_ORDER  # koopman, pdmd, mlp, xlstm
 NEURAL = ("koopman", "mlp", "xlstm")  # the models sharing the encoder-decoder: only the latent map differs
@@ -111,6 +111,7 @@ class Main(Experiment):
                     for m in MODELS]
             columns = [MODEL, Column("forward run", lambda r: mse(r["forward"])),
                        Column("EKF", lambda r: mse(r["ekf"])), *rel_l2_columns({"forward": "forward", "ekf": "EKF"}),
+                       Column("EKF 95 % CI", lambda r: mse_ci95(r["ekf"]), optional=True),
                        Column("EKF / forward", lambda r: mse_ratio(r["ekf"], r["forward"])),
                        Column("forward / MLP fwd", lambda r: mse_ratio(r["forward"], r["base"])),
                        Column("EKF / MLP fwd", lambda r: mse_ratio(r["ekf"], r["base"]))]

@@ -52,6 +52,11 @@ A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run
                                     trajectories (the Common Task Framework's score; negative beyond 1)
     final_channel_rel_l2_mean       {channel: float}   (optional) the relative L2 error of each scored channel at
                                     the final frame, mean over trajectories
+    final_mse_iqm, final_mse_ci95   float | null, [low, high] | null   (optional) the interquartile mean and the
+                                    95 % percentile bootstrap interval of the mean of ``per_trajectory_final_mse``,
+                                    resampled within trajectories when they repeat (noise seeds); the same for
+                                    ``final_rel_l2_*`` and a placement record's ``time_mean_mse_*``
+                                    (:mod:`~dks_gym.evaluation.intervals`); tables print them as stored
 
 A record may carry ``protocol_deviations`` ([str]: the protocol fields its run leaves). ``protocol`` is
 optional, so the files of an older dks-gym stay valid under ``schema_version`` 1: it adds to the schema
@@ -73,6 +78,7 @@ import numpy as np
 from ..assimilation import ctf_score
 from ..atomic import atomic_path
 from ..names import ESTIMATORS, FILTERS, MODEL_KINDS
+from .intervals import interval_fields, interval_problem
 
 SCHEMA = "dks-gym-results"
 SCHEMA_VERSION = 1
@@ -134,6 +140,10 @@ class Record(_RecordKey, total=False):
     per_trajectory_final_rel_l2: list[float | None]
     final_score_mean: float | None
     final_channel_rel_l2_mean: dict[str, float | None]
+    final_mse_iqm: float | None
+    final_mse_ci95: list[float] | None
+    final_rel_l2_iqm: float | None
+    final_rel_l2_ci95: list[float] | None
 
 
 class _DocumentRequired(TypedDict):
@@ -207,6 +217,7 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
             record[f"per_step_{name}_mean"] = _numbers(np.mean(values, axis=1))
     if getattr(result, "step_rel_l2", None) is not None:
         record.update(relative_fields(result.step_rel_l2, result.final_channel_rel_l2, result.channels))
+    record.update(interval_fields(record))
     if keep_curves:
         record["per_trajectory_step_mse"] = _numbers(result.step_mse)
     return record
@@ -339,6 +350,9 @@ def validate_record(rec: Any, where: str = "record") -> None:
             if len(rec[steps]) != len(rec["per_step_mse_mean"]):
                 raise ResultsError(f"{where}: {steps!r} must have one entry per frame, like 'per_step_mse_mean'")
     _check_relative(rec, where)
+    problem = interval_problem(rec)
+    if problem:
+        raise ResultsError(f"{where}: {problem}")
     for name in ("final_channel_mse_mean", "final_channel_nmse_mean", "final_channel_rel_l2_mean"):
         value = rec.get(name)
         if value is not None and (not isinstance(value, dict)

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from .figures import MODEL_LABELS
-from .formatting import MISSING, markdown_table, mean_std, relative_score, sci, sig
+from .formatting import MISSING, interval, markdown_table, mean_std, relative_score, sci, sig
 from .paper import PAPER_DERIVED, PAPER_FINAL_MSE
 from .results import Record, ResultsDocument, select
 
@@ -82,6 +82,13 @@ def mse(rec: Record | None) -> str:
     return MISSING if rec is None else mean_std(rec["final_mse_mean"], rec["final_mse_std"])
 
 
+def mse_ci95(rec: Record | None) -> str:
+    """A record's stored 95 % bootstrap interval of the mean final MSE (never recomputed: another scipy may
+    draw differently); ``-`` for a record without it."""
+    bounds = (rec or {}).get("final_mse_ci95")
+    return MISSING if bounds is None else interval(*bounds)
+
+
 def mse_ratio(num: Record | None, den: Record | None) -> str:
     """The ratio of two records' mean final MSE (``-`` when either is missing or the denominator is 0)."""
     if num is None or den is None or not den["final_mse_mean"] or num["final_mse_mean"] is None:
@@ -130,6 +137,7 @@ __all__ = [
     "label",
     "max_norm",
     "mse",
+    "mse_ci95",
     "mse_ratio",
     "over_steps",
     "paper_mse",
