@@ -11,11 +11,7 @@ from typing import Any
 from .conformance import check_comparable, protocol_differences
 from .formatting import MISSING, percent, sci, sig
 from .results import RECORD_KEY, ResultsDocument, record_key, validate
-
-
-def _max_or_none(values: list | None) -> float | None:
-    finite = [v for v in values or [] if v is not None]
-    return max(finite) if finite else None
+from .tabulate import max_norm
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:
@@ -48,7 +44,7 @@ def compare(a: ResultsDocument, b: ResultsDocument, *, force: bool = False) -> l
         if rb is None:
             rows.append(dict(row, only="a", mse_a=ra["final_mse_mean"]))
             continue
-        norm_a, norm_b = _max_or_none(ra["max_forecast_norm"]), _max_or_none(rb["max_forecast_norm"])
+        norm_a, norm_b = max_norm(ra), max_norm(rb)
         rows.append(dict(
             row, only=None, mse_a=ra["final_mse_mean"], mse_b=rb["final_mse_mean"],
             mse_ratio=_ratio(ra["final_mse_mean"], rb["final_mse_mean"]),

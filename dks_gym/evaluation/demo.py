@@ -23,6 +23,7 @@ from ..models import LatentModel
 from .conformance import stamp_protocol
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart
 from .formatting import MISSING, fixed, mean_std, relative_score, text_table
+from .reproduce import shared_config
 from .results import RESULTS_FILE, Record, make_record, new_results, save_results
 
 DEMO_BENCHMARK = "burgers"
@@ -98,20 +99,6 @@ def _demo_models(ds: Dataset, *, train: bool, device: str, progress: bool) -> di
     return models
 
 
-def _demo_config(ds: Dataset, base: AssimilationConfig, device: str) -> dict[str, Any]:
-    """The results file's shared config: the filter settings, the data and the versions."""
-    import torch
-
-    from ..version import __version__
-
-    return {"experiments": ["demo"], "n_sensors": base.n_sensors, "P0": base.filter.P0, "Q": base.filter.Q,
-            "noise_seed": base.noise_seed, "filter_seed": base.filter.seed,
-            "split": "test", "n_test": ds.n_trajectories("test"), "n_frames": ds.n_frames, "dt": ds.dt,
-            "t0": float(ds.time[0]), "param_name": ds.param_name, "observed_channel": ds.observed_channel,
-            "scored_channels": list(ds.scored_channels), "device": device, "dtype": "float32",
-            "data_preset": ds.preset, "dks_gym_version": __version__, "torch_version": torch.__version__}
-
-
 def run_demo(
     out: str | Path | None = None,
     *,
@@ -153,7 +140,7 @@ def run_demo(
         records.append(make_record(result, experiment="demo", keep_curves=False))
     bar.close()
 
-    config = dict(_demo_config(ds, base, device), wall_time_s=time.perf_counter() - start,
+    config = dict(shared_config(base, ds, device), experiments=["demo"], wall_time_s=time.perf_counter() - start,
                   setup_time_s=trained - start, shipped_models=shipped)
     doc = stamp_protocol(new_results(DEMO_BENCHMARK, "lite", dataset_identity(ds), config, records))
     save_results(doc, out / RESULTS_FILE)

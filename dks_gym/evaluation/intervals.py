@@ -122,21 +122,5 @@ def interval_fields(record: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def interval_problem(record: dict[str, Any]) -> str | None:
-    """What is malformed in a record's optional interval fields (absent is fine), or ``None``."""
-    for prefix, _ in INTERVAL_SOURCES:
-        value = record.get(f"{prefix}_iqm")
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                  or not np.isfinite(value)):
-            return f"{prefix + '_iqm'!r} must be a number or null, got {value!r}"
-        bounds = record.get(f"{prefix}_ci95")
-        if bounds is not None and not (
-                isinstance(bounds, list) and len(bounds) == 2
-                and all(isinstance(b, (int, float)) and not isinstance(b, bool) and np.isfinite(b) for b in bounds)
-                and bounds[0] <= bounds[1]):
-            return f"{prefix + '_ci95'!r} must be null or [low, high] with low <= high, got {bounds!r:.80}"
-    return None
-
-
-__all__ = ["INTERVAL_SOURCES", "N_RESAMPLES", "STATISTICS", "interval", "interval_fields", "interval_problem",
-           "iqm", "strata_of"]
+__all__ = ["INTERVAL_SOURCES", "N_RESAMPLES", "STATISTICS", "interval", "interval_fields", "iqm",
+           "strata_of"]

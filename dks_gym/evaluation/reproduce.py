@@ -160,15 +160,16 @@ def _previous(path: Path, benchmark: str, preset: str, identity: dict[str, Any])
     return doc
 
 
-def _shared_config(base: AssimilationConfig, ds: Dataset, device: str, noise_seed: int, filter_seed: int) -> dict:
-    """What every record of the run shares, for the results file's ``config``."""
+def shared_config(base: AssimilationConfig, ds: Dataset, device: str) -> dict[str, Any]:
+    """What every record of a run with the filter settings ``base`` on ``ds`` shares, for a results file's
+    ``config`` (reproduce's and the demo's): sensors, P0, Q, seeds, split, the data, device and versions."""
     import torch
 
     from ..version import __version__
 
     return {
-        "n_sensors": base.n_sensors, "P0": base.filter.P0, "Q": base.filter.Q, "noise_seed": noise_seed,
-        "filter_seed": filter_seed, "split": base.split, "n_test": ds.n_trajectories(base.split),
+        "n_sensors": base.n_sensors, "P0": base.filter.P0, "Q": base.filter.Q, "noise_seed": base.noise_seed,
+        "filter_seed": base.filter.seed, "split": base.split, "n_test": ds.n_trajectories(base.split),
         "n_frames": ds.n_frames, "dt": ds.dt, "t0": float(ds.time[0]), "param_name": ds.param_name,
         "observed_channel": ds.observed_channel, "scored_channels": list(ds.scored_channels),
         "device": str(device), "dtype": "float32", "data_preset": ds.preset, "dks_gym_version": __version__,
@@ -263,7 +264,7 @@ def _open(benchmark: str, preset: str, device: str, out: Path, ds: Dataset, trai
     # The paper's P0 and Q for its tables (the values the committed results record).
     base = AssimilationConfig(noise_seed=noise_seed).replace(seed=filter_seed, P0=PAPER_P0, Q=PAPER_Q)
     return Reproduction(benchmark, preset, device, out, ds, identity, base,
-                        _shared_config(base, ds, device, noise_seed, filter_seed), previous, kept, train, progress)
+                        shared_config(base, ds, device), previous, kept, train, progress)
 
 
 def _announce(session: Reproduction, pairs: list[tuple[str, Run]], log: Callable[[str], None]) -> int:
@@ -333,4 +334,5 @@ def reproduce(
     return session.doc
 
 
-__all__ = ["EXPERIMENTS", "Reproduction", "Run", "plan", "reproduce", "tables_markdown", "write_figures"]
+__all__ = ["EXPERIMENTS", "Reproduction", "Run", "plan", "reproduce", "shared_config", "tables_markdown",
+           "write_figures"]

@@ -78,7 +78,7 @@ import numpy as np
 from ..assimilation import ctf_score
 from ..atomic import atomic_path
 from ..names import ESTIMATORS, FILTERS, MODEL_KINDS
-from .intervals import interval_fields, interval_problem
+from .intervals import INTERVAL_SOURCES, interval_fields
 
 SCHEMA = "dks-gym-results"
 SCHEMA_VERSION = 1
@@ -297,6 +297,17 @@ def _check_relative(rec: dict[str, Any], where: str) -> None:
         _check_list(rec, "per_step_rel_l2_mean", where, len(rec["per_step_mse_mean"]), "the number of frames")
 
 
+def _check_intervals(rec: dict[str, Any], where: str) -> None:
+    """The optional interval fields (``{prefix}_iqm``, ``{prefix}_ci95``), where present."""
+    for prefix, _ in INTERVAL_SOURCES:
+        if not _is_number(rec.get(name := f"{prefix}_iqm")):
+            raise ResultsError(f"{where}: {name!r} must be a number or null, got {rec[name]!r}")
+        name, b = f"{prefix}_ci95", rec.get(f"{prefix}_ci95")
+        if b is not None and not (isinstance(b, list) and len(b) == 2 and _is_number(b[0], nullable=False)
+                                  and _is_number(b[1], nullable=False) and b[0] <= b[1]):
+            raise ResultsError(f"{where}: {name!r} must be null or [low, high] with low <= high, got {b!r:.80}")
+
+
 def validate_record(rec: Any, where: str = "record") -> None:
     """Raise :class:`ResultsError` naming what is missing or malformed in one record."""
     if not isinstance(rec, dict):
@@ -350,9 +361,7 @@ def validate_record(rec: Any, where: str = "record") -> None:
             if len(rec[steps]) != len(rec["per_step_mse_mean"]):
                 raise ResultsError(f"{where}: {steps!r} must have one entry per frame, like 'per_step_mse_mean'")
     _check_relative(rec, where)
-    problem = interval_problem(rec)
-    if problem:
-        raise ResultsError(f"{where}: {problem}")
+    _check_intervals(rec, where)
     for name in ("final_channel_mse_mean", "final_channel_nmse_mean", "final_channel_rel_l2_mean"):
         value = rec.get(name)
         if value is not None and (not isinstance(value, dict)
