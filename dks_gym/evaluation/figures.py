@@ -221,6 +221,10 @@ def spread_figure(
         if ratios:
             ax.axhline(1.0, color="k", lw=0.8, ls=":")
             ax.set_yscale("log")
+            low, high = ax.get_ylim()  # plain numbers at the ticks inside the data's range (over 1 vs under 1)
+            ax.set_yticks([v for v in (0.1, 0.25, 0.5, 0.7, 1.0, 1.4, 2.0, 4.0, 10.0) if low <= v <= high])
+            ax.yaxis.set_major_formatter("{x:g}")
+            ax.yaxis.set_minor_formatter("")
             ax.set_ylabel(f"{MODEL_LABELS.get(model, model)}\nspread / skill")
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
