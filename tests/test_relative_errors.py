@@ -320,3 +320,24 @@ def test_the_derivation_over_several_channels_and_without_curves(dambreak) -> No
         assert [n for n in DERIVED if n in derived] == names
         for name in names:
             _agree(derived, run, name)
+
+
+def test_the_budget_table_adds_the_relative_errors_only_where_the_records_hold_them() -> None:
+    """budgets.md: a second table, per policy and budget, of the final relative L2 error and its score
+    (random: the first seed), absent for records that predate the field."""
+    from dks_gym.evaluation.results import load_results
+    from dks_gym_agents.tables import budget_table
+
+    folder = CALIBRATED.parents[1] / "placement" / "benchmark" / "burgers" / "none"
+    docs = {int(p.parent.name[1:]): load_results(p) for p in folder.glob("m*/placement.json.gz")}
+    table = budget_table(docs)
+    old = budget_table({m: _strip(doc) for m, doc in docs.items()})
+    start = table.index("\n\nFinal-time relative L2")
+    end = table.find("\n\n", table.index("\n\n|", start) + 2)  # the relative table's end: the notes, or the end
+    assert "relative L2" not in old and table[:start] + table[end if end >= 0 else -1:] == old
+    lines = table[table.index("Final-time relative L2"):].splitlines()
+    m = min(docs)
+    for policy in ("paper", "random-0", "forward"):
+        row = next(line for line in lines if line.startswith(f"| {policy.removesuffix('-0')} |"))
+        rec = next(r for r in docs[m]["records"] if r["policy"] == policy)
+        assert row.split(" | ")[1] == _rel(rec), policy
