@@ -183,8 +183,16 @@ def _budget_cell(rec: dict[str, Any] | None, skipped: bool) -> str:
     return text
 
 
+def _relative_cell(rec: dict[str, Any] | None, skipped: bool) -> str:
+    """One policy at one budget: its final-time relative L2 error and score."""
+    if rec is None:
+        return "skipped" if skipped else "-"
+    return relative_score(rec.get("final_rel_l2_mean"), rec.get("final_score_mean"))
+
+
 def budget_table(docs: dict[int, dict[str, Any]]) -> str:
-    """The error-vs-budget table: per policy and m, time-averaged MSE and the paired log ratio to random ± se."""
+    """The error-vs-budget table: per policy and m, time-averaged MSE and the paired log ratio to random ± se;
+    then, where the records hold it, the final-time relative L2 error and its score."""
     budgets = sorted(docs)
     first = docs[budgets[0]]
     cfg = first["config"]
@@ -196,9 +204,16 @@ def budget_table(docs: dict[int, dict[str, Any]]) -> str:
     skipped = {(name, m): reason for m, doc in docs.items()
                for name, reason in doc["config"].get("skipped_policies", {}).items()}
     rows = budget_rows(docs)
-    table = [[name, *(_budget_cell(rows.get(name, {}).get(m), (name, m) in skipped) for m in budgets)]
-             for name in dict.fromkeys([*rows, *(name for name, _ in skipped)])]
-    lines.append(markdown_table(["policy", *(f"m = {m}" for m in budgets)], table))
+    names = list(dict.fromkeys([*rows, *(name for name, _ in skipped)]))
+    header = ["policy", *(f"m = {m}" for m in budgets)]
+    lines.append(markdown_table(header, [[name, *(_budget_cell(rows.get(name, {}).get(m), (name, m) in skipped)
+                                                  for m in budgets)] for name in names]))
+    if any(rec.get("final_rel_l2_mean") is not None for by_m in rows.values() for rec in by_m.values()):
+        # records older than the relative L2 error lack it: their page prints as it did
+        lines += ["", "Final-time relative L2 error ‖x̂ − x‖ / ‖x‖ over the scored channels (mean over the "
+                  "episodes) and in brackets its score 100 (1 − relative L2); random: the first seeded layout.", "",
+                  markdown_table(header, [[name, *(_relative_cell(rows.get(name, {}).get(m), (name, m) in skipped)
+                                                   for m in budgets)] for name in names])]
     for (name, m), reason in sorted(skipped.items(), key=lambda item: item[0][1]):
         lines.append(f"\n{name} skipped at m = {m}: {reason}")
     return "\n".join(lines) + "\n"

@@ -17,9 +17,9 @@ def data_home() -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "dks_gym"
 
 
-def dataset_path(benchmark: str, preset: str = "paper") -> Path:
-    """Default location of a benchmark's dataset file for ``preset``."""
-    return data_home() / "data" / f"{benchmark}-{preset}.h5"
+def dataset_path(benchmark: str, preset: str = "paper", home: str | Path | None = None) -> Path:
+    """Default location of a benchmark's dataset file for ``preset`` in the data home (or in ``home``)."""
+    return (data_home() if home is None else Path(home).expanduser()) / "data" / f"{benchmark}-{preset}.h5"
 
 
 def ensure_writable(directory: Path) -> Path:

@@ -427,6 +427,9 @@ def test_committed_lite_results_every_experiment_in_tables_and_figures(tmp_path:
         for cell, f in zip(row[2:5], ("forward", "ekf", "enkf")):
             rec = _rec(doc, experiment="timing", model=m, filter=f, initial=row[0])
             assert cell == f"{1e3 * rec['da_step_seconds']:.3g}"
+        for cell, f in zip(row[6:9], ("forward", "ekf", "enkf")):  # the timed trajectory's final relative error
+            rel = _rec(doc, experiment="timing", model=m, filter=f, initial=row[0])["final_rel_l2_mean"]
+            assert cell == f"{format(100 * rel, '#.3g').rstrip('.')} % ({100 * (1 - rel):.1f})"
 
     written = write_figures(doc, tmp_path / "figures")
     names = {p.stem for p in written}

@@ -3,6 +3,8 @@ computation, the wrappers' infos, the records and the tables, each against a dir
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -239,3 +241,103 @@ def test_shred_and_placement_records_and_the_ranked_table() -> None:
     assert "| final rel. L2 (score) |" in lines[0]
     qr = next(line for line in lines if "| qr |" in line)
     assert f"| {100 * fields['final_rel_l2_mean']:.3g} % ({fields['final_score_mean']:.1f}) |" in qr
+
+
+CALIBRATED = Path(__file__).resolve().parents[1] / "docs" / "results" / "burgers-lite-calibrated" / "results.json.gz"
+#: The relative L2 fields a record's MSEs determine (per frame only from its curves).
+DERIVED = ("final_rel_l2_mean", "final_rel_l2_std", "per_trajectory_final_rel_l2", "final_score_mean",
+           "final_channel_rel_l2_mean", "per_step_rel_l2_mean")
+
+
+def _numbers(value: object) -> np.ndarray:
+    return np.array(list(value.values()) if isinstance(value, dict) else value, dtype=np.float64)
+
+
+def _agree(derived: dict, run: dict, name: str) -> None:
+    """A derived field equals the run's to 1e-6, those that subtract (the std, the score 100 (1 - it)) to 1e-6 of
+    the error they come from: a difference of nearly equal values magnifies the relative rounding of each."""
+    scale = {"final_rel_l2_std": 1.0, "final_score_mean": 100.0}.get(name, 0.0) * run["final_rel_l2_mean"]
+    np.testing.assert_allclose(_numbers(derived[name]), _numbers(run[name]), rtol=1e-6, atol=1e-6 * scale,
+                               err_msg=name)
+
+
+def test_the_migration_derives_the_relative_errors_the_runs_computed(burgers_paper, data_home, tmp_path) -> None:
+    """From the MSEs the committed records store and freshly generated Burgers paper data (the committed
+    fingerprint), the migration derives the relative L2 fields the runs computed from the fields themselves
+    (float64 sums over the estimate and the truth) to 1e-6; it checks the fields a record holds, refuses
+    other data, and the command adds the fields and their intervals once."""
+    from dks_gym.dataset import DatasetMissing
+    from dks_gym.evaluation.migrate import DataMismatch, add_relative, main, open_dataset
+    from dks_gym.evaluation.results import load_results, save_results
+
+    stored = load_results(CALIBRATED)
+    doc = _strip(stored)
+    with open_dataset(doc, data_home) as ds:
+        assert add_relative(doc, ds).added == len(doc["records"])
+        for derived, run in zip(doc["records"], stored["records"]):
+            names = [n for n in DERIVED if n != "per_step_rel_l2_mean" or "per_trajectory_step_mse" in run]
+            assert [n for n in DERIVED if n in derived] == names, run["experiment"]
+            for name in names:
+                _agree(derived, run, name)
+        report = add_relative(stored, ds)  # records holding the fields: derived again and compared
+        assert report.added == 0 and report.checked == len(stored["records"]) and report.max_deviation < 1e-6
+        tampered = dict(stored, records=[dict(stored["records"][0], per_trajectory_final_rel_l2=[
+            1.001 * v for v in stored["records"][0]["per_trajectory_final_rel_l2"]])])
+        with pytest.raises(DataMismatch, match="not the data"):
+            add_relative(tampered, ds)
+    with pytest.raises(DataMismatch, match="fingerprint"):
+        open_dataset(dict(doc, dataset=dict(doc["dataset"], fingerprint="0" * 64)), data_home)
+
+    path = tmp_path / "results.json.gz"
+    save_results(_strip(dict(stored, records=stored["records"][:4])), path)
+    with pytest.raises(DatasetMissing, match="dks-gym data generate burgers --preset paper"):
+        main(["--relative", "--data-home", str(tmp_path / "empty"), str(path)])
+    assert main([str(path)]) == 0 and "final_rel_l2_mean" not in load_results(path)["records"][0]  # data-free
+    assert main(["--relative", "--data-home", str(data_home), str(path)]) == 0
+    migrated, before = load_results(path)["records"], path.read_bytes()
+    assert all(m[n] == d[n] for m, d in zip(migrated, doc["records"]) for n in DERIVED if n in d)
+    assert all(m["final_rel_l2_ci95"][0] <= m["final_rel_l2_mean"] <= m["final_rel_l2_ci95"][1] for m in migrated)
+    assert main(["--relative", str(path)]) == 0 and path.read_bytes() == before  # once
+
+
+def test_the_derivation_over_several_channels_and_without_curves(dambreak) -> None:
+    """Five scored channels: the derived total relative error equals the run's (float32 MSE against float64 sums)
+    with and without the per-trajectory curves; the per-channel one, which the MSE over all channels does not
+    determine, is left out."""
+    from dks_gym.evaluation.migrate import add_relative
+    from dks_gym.evaluation.results import make_record, new_results
+
+    ds, model = dambreak
+    records = [make_record(run_assimilation(model, ds, AssimilationConfig().replace(kind=f), uncertainty=False),
+                           experiment="main", keep_curves=f == "ekf") for f in ("forward", "ekf")]
+    doc = _strip(new_results("dambreak", "lite", {"path": "x.h5", "fingerprint": "0"},
+                             {"scored_channels": list(ds.scored_channels), "split": "test"}, records))
+    report = add_relative(doc, ds)
+    assert report.added == 2 and "final_channel_rel_l2_mean not derived (5 scored channels)" in report.notes
+    for derived, run in zip(doc["records"], records):
+        names = [n for n in DERIVED if n != "final_channel_rel_l2_mean"
+                 and (n != "per_step_rel_l2_mean" or "per_trajectory_step_mse" in run)]
+        assert [n for n in DERIVED if n in derived] == names
+        for name in names:
+            _agree(derived, run, name)
+
+
+def test_the_budget_table_adds_the_relative_errors_only_where_the_records_hold_them() -> None:
+    """budgets.md: a second table, per policy and budget, of the final relative L2 error and its score
+    (random: the first seed), absent for records that predate the field."""
+    from dks_gym.evaluation.results import load_results
+    from dks_gym_agents.tables import budget_table
+
+    folder = CALIBRATED.parents[1] / "placement" / "benchmark" / "burgers" / "none"
+    docs = {int(p.parent.name[1:]): load_results(p) for p in folder.glob("m*/placement.json.gz")}
+    table = budget_table(docs)
+    old = budget_table({m: _strip(doc) for m, doc in docs.items()})
+    start = table.index("\n\nFinal-time relative L2")
+    end = table.find("\n\n", table.index("\n\n|", start) + 2)  # the relative table's end: the notes, or the end
+    assert "relative L2" not in old and table[:start] + table[end if end >= 0 else -1:] == old
+    lines = table[table.index("Final-time relative L2"):].splitlines()
+    m = min(docs)
+    for policy in ("paper", "random-0", "forward"):
+        row = next(line for line in lines if line.startswith(f"| {policy.removesuffix('-0')} |"))
+        rec = next(r for r in docs[m]["records"] if r["policy"] == policy)
+        assert row.split(" | ")[1] == _rel(rec), policy

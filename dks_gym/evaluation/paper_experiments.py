@@ -453,11 +453,15 @@ class Timing(Experiment):
             rec = records.find(experiment="main", model=row["model"], filter="ekf", initial=row["initial"])
             return ms(rec) if rec is None or rec["da_step_seconds"] is None else f"{ms(rec)} (B={rec['batch']})"
 
+        def timed(row: Row, f: str) -> Record | None:
+            return records.find(experiment="timing", model=row["model"], filter=f, initial=row["initial"])
+
+        filters = (("forward", "forward"), ("ekf", "EKF"), ("enkf", "EnKF n=20"))
         columns = [Column("initial", lambda r: r["initial"]), MODEL,
-                   *[Column(name, lambda r, f=f: ms(records.find(experiment="timing", model=r["model"], filter=f,
-                                                                 initial=r["initial"])))
-                     for f, name in (("forward", "forward"), ("ekf", "EKF"), ("enkf", "EnKF n=20"))],
-                   Column("EKF, whole test split batched", batched)]
+                   *[Column(name, lambda r, f=f: ms(timed(r, f))) for f, name in filters],
+                   Column("EKF, whole test split batched", batched),
+                   *[Column(f"{name} rel. L2 (score)", lambda r, f=f: rel_l2(timed(r, f)), optional=True)
+                     for f, name in filters]]  # the final error of the timed trajectory: the accuracy timed
         rows = [{"initial": i, "model": m} for i in ("approximate", "exact") for m in MODELS]
         return [Section(f"Wall time per DA step in ms (Figs. 4, 6), one trajectory, {records.config.get('device')}",
                         (tabulate(rows, columns),))]
