@@ -63,6 +63,8 @@ LAZY_COMMANDS = {
                 "Print the ratios B / A of final MSE, operator norm and DA-step time for the runs in..."),
     "demo": ("dks_gym.evaluation.commands:demo_command",
              "Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a..."),
+    "leaderboard": ("dks_gym.evaluation.commands:leaderboard_command",
+                    "Rank the runs of results files (or their folders) made under the protocol: one table..."),
     "reproduce": ("dks_gym.evaluation.commands:reproduce_command",
                   "Run the paper's Section IV experiments on BENCHMARK; write results.json.gz, tables.md and..."),
 }
