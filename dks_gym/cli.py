@@ -65,6 +65,8 @@ LAZY_COMMANDS = {
              "Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a..."),
     "expected": ("dks_gym.evaluation.commands:expected_command",
                  "Print the shipped models' expected scores under BENCHMARK's protocol; --check reruns and..."),
+    "leaderboard": ("dks_gym.evaluation.commands:leaderboard_command",
+                    "Rank the runs of results files (or their folders) made under the protocol: one table..."),
     "reproduce": ("dks_gym.evaluation.commands:reproduce_command",
                   "Run the paper's Section IV experiments on BENCHMARK; write results.json.gz, tables.md and..."),
 }

@@ -3,6 +3,7 @@ reproducibility, that it learns (against the no-sensor estimate), and its bad in
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -75,3 +76,30 @@ def test_bad_input_is_refused(fitted, make_synthetic) -> None:
     one = Dataset(make_synthetic("burgers", n_train=1))
     with pytest.raises(ValueError, match="at least 2 training trajectories"):
         Shred(one, [1, 2], config=QUICK).fit()
+
+
+def test_as_an_estimator_it_reconstructs_each_frame_from_its_past(fitted) -> None:
+    """The leaderboard's SHRED (dks_gym.evaluation.shred_estimator) estimates frame k from frames 1..k as the
+    whole-episode reconstruction does, and the harness scores it as frame_errors scores that reconstruction."""
+    from dks_gym.benchmarks.protocol import get_protocol
+    from dks_gym.evaluation.estimators import score_estimator
+    from dks_gym.evaluation.shred_estimator import ShredEstimator
+
+    shred, ds, layout, readings = fitted
+    mu = ds.params("test")
+    whole = shred.reconstruct(readings, mu)
+    adapter = ShredEstimator(QUICK)
+    adapter.shred = shred  # trained by the fixture
+    assert adapter.rank == QUICK.rank
+    for e in (0, len(readings) - 1):
+        for k in (1, 7, ds.n_frames - 1):
+            np.testing.assert_allclose(adapter.estimate(readings[e, 1:k + 1], layout, mu[e]), whole[e, k],
+                                       rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="layout it was trained on"):
+        adapter.estimate(readings[0, 1:3], layout + 1, mu[0])
+    protocol = dataclasses.replace(get_protocol("burgers"), default_n_sensors=len(layout), data_preset="small")
+    doc = score_estimator(adapter.estimate, "burgers", name="shred", dataset=ds, protocol=protocol)
+    truth = np.asarray(ds.fields("test"))
+    expected = frame_errors(whole, truth, ds.benchmark.scored_indices)[:, -1]
+    np.testing.assert_allclose(doc["records"][0]["per_trajectory_final_mse"], expected, rtol=1e-4)
+    assert doc["protocol"]["deviations"] == {"data_preset": "small"}

@@ -4,7 +4,9 @@
   whole test split as one batch;
 * :mod:`~dks_gym.evaluation.results`: the versioned results JSON (``save_results``, ``load_results``, ``compare``);
 * :func:`reproduce`: ``dks-gym reproduce BENCHMARK`` (every experiment, tables and figures);
-* :func:`run_demo`: ``dks-gym demo``.
+* :func:`run_demo`: ``dks-gym demo``;
+* :func:`~dks_gym.evaluation.estimators.score_estimator`: a user's estimator under the protocol, and
+  :mod:`~dks_gym.evaluation.leaderboard`: ``dks-gym leaderboard``.
 """
 
 from ..assimilation import AssimilationConfig, AssimilationResult, run_assimilation

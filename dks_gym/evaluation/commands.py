@@ -1,5 +1,5 @@
-"""Click commands ``reproduce``, ``compare``, ``demo`` and ``expected`` (registered on ``dks-gym`` with
-``main.add_command``)."""
+"""Click commands ``reproduce``, ``compare``, ``demo``, ``expected`` and ``leaderboard`` (registered on
+``dks-gym`` lazily)."""
 
 from __future__ import annotations
 
@@ -152,6 +152,30 @@ def expected_command(benchmark: str | None, check: bool, markdown: bool, device:
         raise SystemExit(1)
 
 
-COMMANDS = (reproduce_command, compare_command, demo_command, expected_command)
+@click.command("leaderboard")
+@click.argument("results", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write the page here (e.g. docs/results/leaderboard.md) instead of printing it.")
+def leaderboard_command(results: tuple[Path, ...], out: Path | None) -> None:
+    """Rank the runs of results files (or their folders) made under the protocol: one table per benchmark.
 
-__all__ = ["COMMANDS", "compare_command", "demo_command", "expected_command", "reproduce_command"]
+    Rows: each latent model under each filter of a reproduce file (its calibrated experiment, else main and
+    enkf) and every estimator scored by dks_gym.evaluation.estimators; files or runs that leave the protocol
+    are listed as not ranked, with the reason.
+    """
+    from .leaderboard import leaderboard_page, write_leaderboard
+    from .results import ResultsError
+
+    try:
+        if out is None:
+            click.echo(leaderboard_page(results), nl=False)
+        else:
+            click.echo(f"wrote {write_leaderboard(results, out)}")
+    except (ResultsError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from exc
+
+
+COMMANDS = (reproduce_command, compare_command, demo_command, expected_command, leaderboard_command)
+
+__all__ = ["COMMANDS", "compare_command", "demo_command", "expected_command", "leaderboard_command",
+           "reproduce_command"]

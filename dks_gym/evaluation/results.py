@@ -17,7 +17,7 @@ One file holds the runs of one benchmark with one model preset::
 A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run over the test split::
 
     experiment  str     "main", "enkf", "ensemble", "noise", "latent", "multistep", "operator_norm", "timing"
-    model       str     "koopman", "pdmd", "mlp", "xlstm"; or an estimator without a filter: "shred"
+    model       str     "koopman", "pdmd", "mlp", "xlstm"; or an estimator's name (filter "none"): "shred", a user's
     filter      str     "forward", "ekf", "enkf"; "none" for an estimator (r: its output rank)
     initial     str     "approximate", "exact"
     noise       float   noise level (sigma / max |observed channel|)
@@ -86,7 +86,7 @@ import numpy as np
 
 from ..assimilation import ctf_score
 from ..atomic import atomic_path
-from ..names import ESTIMATORS, FILTERS, MODEL_KINDS
+from ..names import FILTERS, MODEL_KINDS
 from .intervals import interval_fields
 from .record_fields import UNCERTAINTY_SCORES, ResultsError, check_list, check_optional_fields, is_number
 
@@ -95,7 +95,6 @@ SCHEMA_VERSION = 1
 #: The name every writer gives its results file (gzip-compressed JSON: a tenth of the plain size).
 RESULTS_FILE = "results.json.gz"
 RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_members")
-MODELS = MODEL_KINDS + ESTIMATORS
 RECORD_FILTERS = FILTERS + ("none",)  # "none": an estimator's record (no filter)
 INITIALS = ("approximate", "exact")
 _REQUIRED_TOP = ("schema", "schema_version", "benchmark", "preset", "dataset", "config", "records")
@@ -260,8 +259,7 @@ def new_results(benchmark: str, preset: str, dataset: dict[str, Any], config: di
                 records: Iterable[dict[str, Any]] = (), models: Iterable[dict[str, Any]] = ()) -> dict[str, Any]:
     """A results document (validated)."""
     doc = {
-        "schema": SCHEMA,
-        "schema_version": SCHEMA_VERSION,
+        "schema": SCHEMA, "schema_version": SCHEMA_VERSION,
         "benchmark": benchmark,
         "preset": preset,
         "dataset": shared_dataset(dataset),  # a results file is shared and committed
@@ -294,9 +292,11 @@ def validate_record(rec: Any, where: str = "record") -> None:
         raise ResultsError(f"{where} lacks {', '.join(missing)}")
     if not isinstance(rec["experiment"], str) or not rec["experiment"]:
         raise ResultsError(f"{where}: 'experiment' must be a non-empty string")
-    for name, allowed in (("model", MODELS), ("filter", RECORD_FILTERS), ("initial", INITIALS)):
+    for name, allowed in (("filter", RECORD_FILTERS), ("initial", INITIALS)):
         if rec[name] not in allowed:
             raise ResultsError(f"{where}: {name!r} is {rec[name]!r}; expected one of {', '.join(allowed)}")
+    if rec["model"] not in MODEL_KINDS and (rec["filter"] != "none" or not str(rec["model"] or "").strip()):
+        raise ResultsError(f"{where}: 'model' {rec['model']!r} is none of {MODEL_KINDS} (any name: filter 'none')")
     if not is_number(rec["noise"], nullable=False) or rec["noise"] <= 0:
         raise ResultsError(f"{where}: 'noise' must be a positive number, got {rec['noise']!r}")
     for name in ("r", "T", "batch"):

@@ -113,7 +113,8 @@ class Shred:
         scaled = np.where(present, (readings - self._reading_mean) / self._reading_std, 0.0)
         episodes, n_t = readings.shape[:2]
         mu_col = np.broadcast_to(((mu - self._mu_mean) / self._mu_std)[:, None, None], (episodes, n_t, 1))
-        time_col = np.broadcast_to(np.linspace(0.0, 1.0, n_t)[None, :, None], (episodes, n_t, 1))
+        # the episode's own time axis, so that a history cut at frame k (reconstruct_frame) keeps its times
+        time_col = np.broadcast_to(np.linspace(0.0, 1.0, self.dataset.n_frames)[None, :n_t, None], (episodes, n_t, 1))
         return torch.as_tensor(np.concatenate([scaled, present, mu_col, time_col], axis=2), dtype=torch.float32)
 
     def _windows(self, inputs: torch.Tensor, frames: np.ndarray) -> torch.Tensor:
@@ -216,8 +217,9 @@ class Shred:
         if self.network is None:
             raise RuntimeError("call fit() before reconstruct()")
         readings = np.asarray(readings, dtype=np.float64)
-        if readings.ndim != 3 or readings.shape[2] != len(self.layout):
-            raise ValueError(f"readings must be (episodes, frames, {len(self.layout)}), got {readings.shape}")
+        if readings.ndim != 3 or readings.shape[2] != len(self.layout) or readings.shape[1] > self.dataset.n_frames:
+            raise ValueError(f"readings must be (episodes, frames <= {self.dataset.n_frames}, {len(self.layout)}), "
+                             f"got {readings.shape}")
         episodes, n_t = readings.shape[:2]
         frames = np.arange(1, n_t)
         with torch.no_grad():
@@ -227,6 +229,23 @@ class Shred:
         out[:, 0] = self._fields(torch.zeros(1, self._modes.shape[1]))[0]
         out[:, 1:] = self._fields(coefficients).reshape(episodes, n_t - 1, *self._field_shape)
         return out
+
+    @torch_threads("assimilate")
+    def reconstruct_frame(self, history: np.ndarray, mu: float) -> np.ndarray:
+        """The field (C, *grid) at frame k from the readings of frames 1..k, ``history`` (k, m) (NaN where missing),
+        of an episode with parameter ``mu``: what :meth:`reconstruct` gives at frame k, from the past alone."""
+        if self.network is None:
+            raise RuntimeError("call fit() before reconstruct_frame()")
+        history = np.asarray(history, dtype=np.float64)
+        k = len(history)
+        if history.ndim != 2 or history.shape[1] != len(self.layout) or not 1 <= k < self.dataset.n_frames:
+            raise ValueError(f"history must be (k, {len(self.layout)}) with 1 <= k < {self.dataset.n_frames}, "
+                             f"got {history.shape}")
+        readings = np.concatenate([np.full((1, len(self.layout)), np.nan), history])[None]  # frame 0 is not read
+        with torch.no_grad():
+            coefficients = self.network(self._windows(self._inputs(readings, np.array([mu], dtype=np.float64)),
+                                                      np.array([k])))
+        return self._fields(coefficients)[0]
 
     def project(self, fields: np.ndarray) -> np.ndarray:
         """The rank-``rank`` POD projection of ``fields`` (E, n_t, C, *grid), the best this SHRED can output:
