@@ -18,6 +18,10 @@ bias drift, saturation, quantization, latency and slow sensors, seeded like the 
 NaN in the observation (which a Box cannot contain: the filter wrappers observe the belief instead) and
 ``info["mask"]`` (True = present, always given) says which. Latency reads the current layout's cells.
 
+``parameter="hidden"`` leaves the trajectory's physical parameter mu out of ``info`` (default "known": in
+``info["mu"]``), so that an agent or a filter must estimate it; the env keeps it (``env.unwrapped.mu``) to
+score estimates.
+
 An episode ends with ``truncated=True`` when the last frame is reached: the flow goes on, the record stops.
 """
 
@@ -36,6 +40,8 @@ from .faults import FaultRealization, SensorFaults
 from .noise import measurement_noise, noise_sigma
 
 SENSOR_MODES = ("fixed", "select")
+#: Whether info carries the episode's mu ("known") or not ("hidden").
+PARAMETER_MODES = ("known", "hidden")
 _RESET_OPTIONS = {"trajectory", "sensors", "noise_seed"}
 _WHOLE_TRAJECTORY_BYTES = 64 << 20  # smaller trajectories are read once per episode, larger ones frame by frame
 
@@ -60,8 +66,13 @@ class SensingEnv(gym.Env):
         faults: SensorFaults | dict[str, Any] | None = None,
         render_mode: str | None = None,
         render_channel: str | None = None,
+        parameter: str = "known",
     ) -> None:
         self.benchmark = get_benchmark(benchmark)
+        if parameter not in PARAMETER_MODES:
+            raise ValueError(f"parameter must be 'known' (mu in info) or 'hidden' (mu kept for scoring only), "
+                             f"got {parameter!r}")
+        self.parameter = parameter
         if split not in SPLITS:
             raise ValueError(f"unknown split {split!r}; choose 'train' or 'test'")
         if sensor_mode not in SENSOR_MODES:
@@ -73,6 +84,12 @@ class SensingEnv(gym.Env):
             raise ValueError(f"unsupported render_mode {render_mode!r}; choose 'rgb_array' or None")
         self.faults = SensorFaults.from_any(faults)
         self.dataset: Dataset = load_dataset(self.benchmark.name, preset, data_path)
+        if self.faults is not None and self.faults.latency >= self.dataset.n_frames - 1:
+            raise ValueError(
+                f"faults latency {self.faults.latency} leaves every episode of {self.dataset.n_frames} frames "
+                f"without a reading to assimilate: the readings of frame k arrive at frame k + latency, and the "
+                f"first one a filter uses (frame 1's) would come after the last frame ({self.dataset.n_frames - 1}); "
+                f"use a latency of at most {self.dataset.n_frames - 2}")
         self.split = split
         self.sensor_mode = sensor_mode
         self.noise_level = float(noise_level)
@@ -280,7 +297,7 @@ class SensingEnv(gym.Env):
         return obs
 
     def _info(self) -> dict[str, Any]:
-        return {
+        info = {
             "mu": self.mu,
             "param_name": self.benchmark.param_name,
             "time_index": self._k,
@@ -294,6 +311,9 @@ class SensingEnv(gym.Env):
             "sigma": self.sigma,
             "noise_seed": self._noise_seed,
         }
+        if self.parameter == "hidden":  # an agent must not read it; the env keeps it for scoring
+            del info["mu"]
+        return info
 
     # Rendering -------------------------------------------------------------------------------------
     def render(self) -> np.ndarray | None:
