@@ -322,6 +322,7 @@ class PDMD(LatentModel):
 
     def _reset_dmd(self) -> None:
         self._pdmd = None
+        self._forecast_cache = None
         self._operator_cache.clear()
 
     def parametric_dmd(self) -> Any:
@@ -384,6 +385,49 @@ class PDMD(LatentModel):
         ops = np.stack([self._operator_cache[float(m)] for m in mu_np])
         return torch.as_tensor(ops, device=self.stats_mean.device)
 
+    def differentiable_operator(self, mu: torch.Tensor) -> torch.Tensor:
+        """A~(mu) (B, r, r) float64 as a torch function of ``mu`` (B,): the same numbers as
+        :meth:`online_operator` (to round-off), differentiable in mu, for a filter that estimates mu.
+
+        The RBF interpolant of Eq. A3 is linear in the values it interpolates, so the interpolated coefficients
+        are ``W(mu) @ F``: ``F`` the DMD-forecast coefficients of the training parameters (n_train, n_t, r),
+        ``W(mu)`` the interpolant's cardinal weights, [phi(eps |mu - mu_j|), 1] times the inverse of the
+        system scipy solves (the multiquadric kernel with its ridge, bordered by the constant). Eq. A4 is then
+        the Tikhonov (or pseudoinverse) fit in torch."""
+        weights = self._cardinal_weights(mu.to(torch.float64))  # (B, n_train)
+        z = torch.einsum("bj,jtr->btr", weights, self._forecast_training_coefficients())
+        z0, z1 = z[:, :-1].mT, z[:, 1:].mT  # (B, r, n_t - 1)
+        if self.pinv_rtol is not None:
+            return z1 @ torch.linalg.pinv(z0, rtol=self.pinv_rtol)
+        lam2 = (self.operator_tikhonov * torch.linalg.matrix_norm(z0, ord=2)) ** 2
+        gram = z0 @ z0.mT + lam2[:, None, None] * torch.eye(self.r, dtype=z.dtype, device=z.device)
+        return torch.linalg.solve(gram, z0 @ z1.mT).mT  # Z1 Z0^T (Z0 Z0^T + lambda^2 I)^-1
+
+    def _forecast_training_coefficients(self) -> torch.Tensor:
+        """The DMD-forecast coefficients of the training parameters that Eq. A3 interpolates, (n_train, n_t, r)."""
+        if getattr(self, "_forecast_cache", None) is None:
+            pdmd = self.parametric_dmd()
+            forecast = np.real(pdmd._predict_modal_coefficients()).reshape(len(self.train_params), self.r, -1)
+            self._forecast_cache = torch.as_tensor(np.ascontiguousarray(forecast.transpose(0, 2, 1)))
+        return self._forecast_cache.to(self.stats_mean.device)
+
+    def _cardinal_weights(self, mu: torch.Tensor) -> torch.Tensor:
+        """W(mu) (B, n_train) of the multiquadric interpolant as :class:`~dks_gym.models.rbf.MultiquadricRBF`
+        fits it (scipy's kernel -sqrt(1 + r^2) on eps-scaled points, the ridge on the diagonal, a constant)."""
+        from .rbf import default_epsilon, kernel_scale
+
+        points = self.train_params.to(torch.float64).cpu().numpy()[:, None]
+        eps = default_epsilon(points)
+        ridge = self.rbf_smoothing * kernel_scale(points, eps) if self.rbf_smoothing > 0 else 0.0
+        x = torch.as_tensor(points[:, 0], device=mu.device)
+        n = len(x)
+        system = torch.zeros(n + 1, n + 1, dtype=torch.float64, device=mu.device)
+        system[:n, :n] = -torch.sqrt(1 + (eps * (x[:, None] - x[None, :])) ** 2) + ridge * torch.eye(n, device=mu.device,
+                                                                                                  dtype=torch.float64)
+        system[:n, n] = system[n, :n] = 1.0
+        row = torch.cat([-torch.sqrt(1 + (eps * (mu[:, None] - x[None, :])) ** 2), mu.new_ones(len(mu), 1)], dim=1)
+        return torch.linalg.solve(system, row.mT).mT[:, :n]  # the system is symmetric
+
     def fit_operator(self, coefficients: np.ndarray) -> np.ndarray:
         """Eq. A4 for one coefficient sequence (n_t, r): the A (r, r) with z_{k+1} ~ A z_k, float64.
 
@@ -423,7 +467,9 @@ class PDMD(LatentModel):
         a 99-step Burgers run by up to 1e-3 relative between thread counts; rounding only the result keeps
         float32 runs within 1e-4 of float64 ones."""
         z = self._latent(z)
-        a = self.online_operator(self._param(mu, z.shape[0]))
+        mu = self._param(mu, z.shape[0])
+        # differentiated in mu (a filter estimating it): the torch operator; else the cached PyDMD one
+        a = self.differentiable_operator(mu) if mu.requires_grad else self.online_operator(mu)
         return (a @ z.to(a.dtype)[..., None])[..., 0].to(z.dtype)
 
     def forecast_jacobian(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
