@@ -46,6 +46,32 @@ _RESET_OPTIONS = {"trajectory", "sensors", "noise_seed"}
 _WHOLE_TRAJECTORY_BYTES = 64 << 20  # smaller trajectories are read once per episode, larger ones frame by frame
 
 
+def _check_settings(split: str, sensor_mode: str, noise_level: Any, render_mode: str | None, parameter: str,
+                    render_modes: list[str]) -> None:
+    """The env's plain settings, each refused with what to use instead."""
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; choose 'train' or 'test'")
+    if sensor_mode not in SENSOR_MODES:
+        raise ValueError(f"unknown sensor_mode {sensor_mode!r}; choose 'fixed' or 'select'")
+    if not (isinstance(noise_level, numbers.Real) and not isinstance(noise_level, bool)
+            and np.isfinite(noise_level) and noise_level >= 0):
+        raise ValueError(f"noise_level must be a finite number >= 0, got {noise_level!r}")
+    if render_mode is not None and render_mode not in render_modes:
+        raise ValueError(f"unsupported render_mode {render_mode!r}; choose 'rgb_array' or None")
+    if parameter not in PARAMETER_MODES:
+        raise ValueError(f"parameter must be 'known' (mu in info) or 'hidden' (mu kept for scoring only), "
+                         f"got {parameter!r}")
+
+
+def _check_latency(faults: SensorFaults | None, n_frames: int) -> None:
+    """Refuse a latency after which no reading reaches a filter before the episode ends."""
+    if faults is not None and faults.latency >= n_frames - 1:
+        raise ValueError(
+            f"faults latency {faults.latency} leaves every episode of {n_frames} frames without a reading to "
+            f"assimilate: the readings of frame k arrive at frame k + latency, and the first one a filter uses "
+            f"(frame 1's) would come after the last frame ({n_frames - 1}); use a latency of at most {n_frames - 2}")
+
+
 class SensingEnv(gym.Env):
     """Noisy sparse sensing of a stored benchmark trajectory."""
 
@@ -69,27 +95,11 @@ class SensingEnv(gym.Env):
         parameter: str = "known",
     ) -> None:
         self.benchmark = get_benchmark(benchmark)
-        if parameter not in PARAMETER_MODES:
-            raise ValueError(f"parameter must be 'known' (mu in info) or 'hidden' (mu kept for scoring only), "
-                             f"got {parameter!r}")
+        _check_settings(split, sensor_mode, noise_level, render_mode, parameter, self.metadata["render_modes"])
         self.parameter = parameter
-        if split not in SPLITS:
-            raise ValueError(f"unknown split {split!r}; choose 'train' or 'test'")
-        if sensor_mode not in SENSOR_MODES:
-            raise ValueError(f"unknown sensor_mode {sensor_mode!r}; choose 'fixed' or 'select'")
-        if not (isinstance(noise_level, numbers.Real) and not isinstance(noise_level, bool)
-                and np.isfinite(noise_level) and noise_level >= 0):
-            raise ValueError(f"noise_level must be a finite number >= 0, got {noise_level!r}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"unsupported render_mode {render_mode!r}; choose 'rgb_array' or None")
         self.faults = SensorFaults.from_any(faults)
         self.dataset: Dataset = load_dataset(self.benchmark.name, preset, data_path)
-        if self.faults is not None and self.faults.latency >= self.dataset.n_frames - 1:
-            raise ValueError(
-                f"faults latency {self.faults.latency} leaves every episode of {self.dataset.n_frames} frames "
-                f"without a reading to assimilate: the readings of frame k arrive at frame k + latency, and the "
-                f"first one a filter uses (frame 1's) would come after the last frame ({self.dataset.n_frames - 1}); "
-                f"use a latency of at most {self.dataset.n_frames - 2}")
+        _check_latency(self.faults, self.dataset.n_frames)
         self.split = split
         self.sensor_mode = sensor_mode
         self.noise_level = float(noise_level)

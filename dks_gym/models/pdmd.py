@@ -39,8 +39,8 @@ continuously with the data instead of jumping with the rounding:
   relative cutoff.
 
 The four settings are the model's state: they round-trip through ``state_dict`` (as its extra state) and
-are mirrored in the checkpoint metadata. The POD basis vectors get a fixed sign (see :func:`streamed_pod`),
-since LAPACK's choice of sign depends on the thread count and the CPU.
+are mirrored in the checkpoint metadata. The POD basis vectors get a fixed sign (see
+:func:`~dks_gym.models.pod.streamed_pod`), since LAPACK's choice of sign depends on the thread count and the CPU.
 
 As a latent model: encode(x) = U_r^T normalize(x), decode(z) = denormalize(U_r z), both independent of
 mu; h(z) = S decode(z) is affine with Jacobian S diag(std) U_r (:meth:`PDMD.observation_matrix`).
@@ -58,93 +58,11 @@ import torch
 
 from ..dataset import Dataset
 from .latent_model import ArrayLike, LatentModel
+from .pod import streamed_pod
 from .presets import BenchmarkShape
 
 #: PyDMD's warning about the condition number of the snapshots it fits (pydmd/snapshots.py).
 _CONDITION_WARNING = re.compile(r"Input data condition number ([-+]?[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)")
-
-
-#: Seed of :func:`sign_reference`.
-SIGN_SEED = 20240613
-
-
-def sign_reference(n: int) -> torch.Tensor:
-    """The fixed vector g (n,) float64 that orients the POD basis: each basis vector u has g^T u > 0.
-
-    Standard normal draws of numpy's legacy ``RandomState`` (whose stream numpy keeps fixed across versions
-    and platforms). g^T u is then N(0, 1) for any unit vector u, so it is never near zero by structure, as
-    the largest entry of a mode can be (the two mirror-image extremes of an antisymmetric mode are equal
-    up to round-off); a sign flip would need |g^T u| at round-off level.
-    """
-    return torch.from_numpy(np.random.RandomState(SIGN_SEED).standard_normal(n))
-
-
-def streamed_pod(
-    n_blocks: int,
-    load_block: Callable[[int], torch.Tensor],
-    r: int,
-    *,
-    oversample: int = 10,
-    power_iterations: int = 2,
-    seed: int = 0,
-) -> dict[str, Any]:
-    """Rank-r POD of snapshots delivered block by block, by randomized SVD with streamed products.
-
-    ``load_block(b)`` returns block ``b`` of snapshots as rows, a (M_b, N) tensor (its dtype and device
-    are used throughout). With X = [S_0; S_1; ...]^T (N x M) it follows Halko, Martinsson and Tropp
-    (2011), Alg. 4.4: Y = X Omega, then ``power_iterations`` times Y = X X^T orth(Y), then
-    B = orth(Y)^T X and an SVD of the small B. Each stage is one pass over the blocks.
-
-    Returns ``basis`` (N, r) with orthonormal columns, ``singular_values`` (r,), ``coefficients`` a list
-    of (M_b, r) blocks U_r^T X, ``energy`` the fraction of sum ||x||^2 captured, ``passes``. The sign of
-    each basis vector is fixed by :func:`sign_reference` (g^T u_j > 0), so that the result does not depend
-    on the sign LAPACK happens to pick.
-    """
-    if n_blocks < 1:
-        raise ValueError("streamed_pod needs at least one block of snapshots")
-    gen = torch.Generator().manual_seed(seed)
-    y = None
-    sizes: list[int] = []
-    total_energy = 0.0
-    for b in range(n_blocks):
-        s = load_block(b)
-        sizes.append(s.shape[0])
-        if y is None:
-            y = torch.zeros(s.shape[1], r + oversample, dtype=s.dtype, device=s.device)
-        omega = torch.randn(s.shape[0], y.shape[1], generator=gen, dtype=s.dtype).to(s.device)
-        y += s.T @ omega
-        total_energy += float((s * s).sum())
-    n_snapshots = sum(sizes)
-    k = min(r + oversample, n_snapshots, y.shape[0])
-    if r > k:
-        raise ValueError(f"POD rank r = {r} exceeds the number of snapshots ({n_snapshots}) or grid values")
-    y = y[:, :k]
-    passes = 1
-    for _ in range(power_iterations):
-        q = torch.linalg.qr(y).Q
-        y = torch.zeros_like(q)
-        for b in range(n_blocks):
-            s = load_block(b)
-            y += s.T @ (s @ q)
-        passes += 1
-    q = torch.linalg.qr(y).Q
-    small = torch.cat([(load_block(b) @ q).T for b in range(n_blocks)], dim=1)  # B = Q^T X, (k, M)
-    passes += 1
-    ub, sv, vt = torch.linalg.svd(small, full_matrices=False)
-    basis = q @ ub[:, :r]
-    # LAPACK may return either sign for each singular pair, and which one depends on the thread count and the
-    # CPU. Fix it: every basis vector has a positive projection on a fixed pseudo-random vector.
-    sign = torch.sign(sign_reference(basis.shape[0]).to(basis) @ basis)
-    sign[sign == 0] = 1
-    basis = basis * sign
-    coeffs = (sv[:r, None] * (vt[:r] * sign[:, None])).T  # U_r^T X = Sigma_r V_r^T, as rows (M, r)
-    return {
-        "basis": basis,
-        "singular_values": sv[:r],
-        "coefficients": list(torch.split(coeffs, sizes)),
-        "energy": float((sv[:r] ** 2).sum()) / total_energy if total_energy > 0 else 1.0,
-        "passes": passes,
-    }
 
 
 class _ReducedCoordinates:
@@ -394,7 +312,10 @@ class PDMD(LatentModel):
         ``W(mu)`` the interpolant's cardinal weights, [phi(eps |mu - mu_j|), 1] times the inverse of the
         system scipy solves (the multiquadric kernel with its ridge, bordered by the constant). Eq. A4 is then
         the Tikhonov (or pseudoinverse) fit in torch."""
-        weights = self._cardinal_weights(mu.to(torch.float64))  # (B, n_train)
+        from .rbf import cardinal_weights
+
+        weights = cardinal_weights(self.train_params.cpu().numpy()[:, None], mu.to(torch.float64),
+                                   self.rbf_smoothing)  # (B, n_train)
         z = torch.einsum("bj,jtr->btr", weights, self._forecast_training_coefficients())
         z0, z1 = z[:, :-1].mT, z[:, 1:].mT  # (B, r, n_t - 1)
         if self.pinv_rtol is not None:
@@ -410,23 +331,6 @@ class PDMD(LatentModel):
             forecast = np.real(pdmd._predict_modal_coefficients()).reshape(len(self.train_params), self.r, -1)
             self._forecast_cache = torch.as_tensor(np.ascontiguousarray(forecast.transpose(0, 2, 1)))
         return self._forecast_cache.to(self.stats_mean.device)
-
-    def _cardinal_weights(self, mu: torch.Tensor) -> torch.Tensor:
-        """W(mu) (B, n_train) of the multiquadric interpolant as :class:`~dks_gym.models.rbf.MultiquadricRBF`
-        fits it (scipy's kernel -sqrt(1 + r^2) on eps-scaled points, the ridge on the diagonal, a constant)."""
-        from .rbf import default_epsilon, kernel_scale
-
-        points = self.train_params.to(torch.float64).cpu().numpy()[:, None]
-        eps = default_epsilon(points)
-        ridge = self.rbf_smoothing * kernel_scale(points, eps) if self.rbf_smoothing > 0 else 0.0
-        x = torch.as_tensor(points[:, 0], device=mu.device)
-        n = len(x)
-        system = torch.zeros(n + 1, n + 1, dtype=torch.float64, device=mu.device)
-        system[:n, :n] = -torch.sqrt(1 + (eps * (x[:, None] - x[None, :])) ** 2) + ridge * torch.eye(n, device=mu.device,
-                                                                                                  dtype=torch.float64)
-        system[:n, n] = system[n, :n] = 1.0
-        row = torch.cat([-torch.sqrt(1 + (eps * (mu[:, None] - x[None, :])) ** 2), mu.new_ones(len(mu), 1)], dim=1)
-        return torch.linalg.solve(system, row.mT).mT[:, :n]  # the system is symmetric
 
     def fit_operator(self, coefficients: np.ndarray) -> np.ndarray:
         """Eq. A4 for one coefficient sequence (n_t, r): the A (r, r) with z_{k+1} ~ A z_k, float64.
