@@ -30,8 +30,9 @@ INITIAL_CONDITIONS = ("approximate", "exact")
 DIVERGENCE_POLICIES = ("raise", "reset")
 #: Named choices of Q and P0: the paper's (1e-4 I, 1.0 I), or measured on the model's own errors (calibrated).
 CALIBRATION_CHOICES = ("paper", "calibrated")
-#: How the filter treats the physical parameter mu: told the env's (``known``), or estimates it with the state.
-PARAMETER_CHOICES = ("known", "estimate")
+#: How the filter treats the physical parameter mu: told the env's (``known``), estimates it with the state, or
+#: assumes the prior's mean (``prior``: what a filter without the parameter's value would do).
+PARAMETER_CHOICES = ("known", "estimate", "prior")
 PAPER_Q, PAPER_P0 = 1e-4, 1.0
 
 
@@ -58,9 +59,10 @@ class FilterConfig:
     channel's units (0: a constant unknown bias); None (default): no bias. ``bias_prior``: the initial bias's
     standard deviation (default: the env's noise sigma). The bias belongs to a sensor slot of the layout.
     ``parameter``: "known" (default: the env's true mu), "estimate" (mu joins the state,
-    :mod:`dks_gym.filters.parameter`, docs/filters.md) or a number (mu assumed to be that value).
-    ``parameter_prior``: with "estimate", the prior ``(mean, std)`` of mu in its physical units (default: the
-    mean and std of a uniform over the training range); ``parameter_drift``: the std of the estimated
+    :mod:`dks_gym.filters.parameter`, docs/filters.md), "prior" (mu assumed at the prior's mean) or a number
+    (mu assumed to be that value). ``parameter_prior``: with "estimate" or "prior", the prior ``(mean, std)``
+    of mu in its physical units (default: the mean and std of a uniform over the training range, in the
+    estimated coordinate); ``parameter_drift``: the std of the estimated
     coordinate's random-walk step per frame (log mu where the training range spans a decade: a relative
     change), None or 0 for a constant parameter.
     """
@@ -132,8 +134,9 @@ class FilterConfig:
             raise ValueError(f"parameter must be 'known', 'estimate' or a finite number (an assumed mu), got {p!r}")
         estimating = p == "estimate"
         if self.parameter_prior is not None:
-            if not estimating:
-                raise ValueError("parameter_prior is the prior of an estimated mu: set parameter='estimate' too")
+            if p not in ("estimate", "prior"):
+                raise ValueError("parameter_prior is the prior of an estimated mu: set parameter='estimate' (or "
+                                 "'prior', its mean assumed) too")
             prior = self.parameter_prior
             if not (isinstance(prior, (tuple, list)) and len(prior) == 2 and all(
                     isinstance(v, numbers.Real) and not isinstance(v, bool) and np.isfinite(v) for v in prior)):

@@ -70,8 +70,8 @@ class Snapshot:
     crps: np.ndarray | None = None
     # With an estimated parameter (else None), per element: mu's estimate, its std (delta method in the
     # estimated coordinate), the central 95 % interval, whether the estimate leaves the training range (the
-    # model extrapolates there: flagged, not hidden), its relative error |mu^ - mu| / mu and whether the
-    # true mu lies in the interval.
+    # model extrapolates there: flagged, not hidden), its relative error |mu^ - mu| / mu, whether the true
+    # mu lies in the interval, and the estimated coordinate's std over its prior's (near 1: not identified).
     parameter: dict[str, np.ndarray] | None = None
 
     @property
@@ -123,6 +123,7 @@ class Assimilation:
         self._mu: torch.Tensor | None = None
         self._true_mu: np.ndarray | None = None
         self._coordinate: ParameterCoordinate | None = None  # set while mu is estimated
+        self._prior_std = 1.0  # the estimated coordinate's prior std
 
     @property
     def filter(self) -> EKF | EnKF | None:
@@ -159,11 +160,13 @@ class Assimilation:
                                  "FilterConfig(parameter='estimate') or assume a value with "
                                  "FilterConfig(parameter=VALUE)")
             values = self._true_mu
-        elif choice == "estimate":
+        elif choice in ("estimate", "prior"):
             train = envs[0].dataset.params("train")
-            self._coordinate, mean, std = self.config.parameter_state(float(np.min(train)), float(np.max(train)))
-            prior = (mean, std)
-            values = np.full(len(envs), float(self._coordinate.to_param(torch.tensor(mean, dtype=torch.float64))))
+            coordinate, mean, std = self.config.parameter_state(float(np.min(train)), float(np.max(train)))
+            values = np.full(len(envs), float(coordinate.to_param(torch.tensor(mean, dtype=torch.float64))))
+            if choice == "estimate":
+                self._coordinate, prior = coordinate, (mean, std)
+                self._prior_std = std
         else:
             values = np.full(len(envs), float(choice))
         self._mu = torch.as_tensor(values, dtype=self.dtype, device=self.device)
@@ -285,7 +288,8 @@ class Assimilation:
                 "mu_low": low.cpu().numpy(), "mu_high": high.cpu().numpy(),
                 "mu_out_of_range": coordinate.outside(s).cpu().numpy(),
                 "mu_relative_error": ((mu - truth).abs() / truth.abs()).cpu().numpy(),
-                "mu_in_interval": ((low <= truth) & (truth <= high)).cpu().numpy()}
+                "mu_in_interval": ((low <= truth) & (truth <= high)).cpu().numpy(),
+                "mu_std_ratio": (s_std / self._prior_std).cpu().numpy()}
 
     def truth(self, envs: Sequence[SensingEnv]) -> np.ndarray:
         """The envs' true fields (B, C, *grid) as the core scores them, float32."""

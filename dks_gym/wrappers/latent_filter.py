@@ -22,7 +22,8 @@ with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env
 * with ``FilterConfig(parameter="estimate")`` (mu estimated with the state; needed on an env made with
   ``parameter="hidden"``): ``mu_estimate``, ``mu_std``, the central 95 % interval ``mu_low``, ``mu_high``,
   ``mu_out_of_range`` (the estimate left the training range: the model extrapolates), and its scores against
-  the env's true mu, ``mu_relative_error`` and ``mu_in_interval``;
+  the env's true mu, ``mu_relative_error`` and ``mu_in_interval``, and ``mu_std_ratio`` (the estimated
+  coordinate's std over its prior's: near 1, the sensors have not identified mu);
 * reward: minus the MSE over the scored channels against ``env.unwrapped.true_state`` (physical units),
   or over standardized channels with ``reward="normalized_mse"``.
 """
