@@ -63,6 +63,8 @@ LAZY_COMMANDS = {
                 "Print the ratios B / A of final MSE, operator norm and DA-step time for the runs in..."),
     "demo": ("dks_gym.evaluation.commands:demo_command",
              "Burgers end to end: data, four lite models, forward run / EKF / EnKF, a table and a..."),
+    "expected": ("dks_gym.evaluation.commands:expected_command",
+                 "Print the shipped models' expected scores under BENCHMARK's protocol; --check reruns and..."),
     "reproduce": ("dks_gym.evaluation.commands:reproduce_command",
                   "Run the paper's Section IV experiments on BENCHMARK; write results.json.gz, tables.md and..."),
 }

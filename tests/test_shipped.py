@@ -125,24 +125,48 @@ def test_the_users_own_checkpoint_comes_before_the_shipped_one(burgers_paper: Pa
     assert torch.isfinite(z).all()
 
 
-def test_the_demo_with_the_shipped_burgers_models_reproduces_the_committed_table(burgers_paper: Path, tmp_path: Path,
-                                                                                capsys: pytest.CaptureFixture) -> None:
-    """Published checkpoints against the published table: `dks-gym demo` with the shipped lite models on freshly
-    generated Burgers paper data gives the committed final-time MSE (docs/results/burgers-lite-calibrated,
-    experiment `calibrated`: forward run, EKF and EnKF of every model, calibrated Q and P0) to 3 digits, says
-    that it used the shipped models. About 35 s on one core: the demo's twelve runs are the table."""
+@pytest.fixture(scope="module")
+def shipped_demo(burgers_paper: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, str, Path]:
+    """`dks-gym demo` with the shipped lite models on freshly generated Burgers paper data (about 35 s on one
+    core: its twelve runs are both the committed table's and the expected scores' Burgers rows), what it printed
+    and its folder."""
+    import contextlib
+    import io
+
     from dks_gym.evaluation.demo import run_demo
 
+    out = tmp_path_factory.mktemp("demo")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        doc = run_demo(out, progress=False)
+    return doc, printed.getvalue(), out
+
+
+def test_the_demo_with_the_shipped_burgers_models_reproduces_the_committed_table(
+        shipped_demo: tuple[dict, str, Path]) -> None:
+    """Published checkpoints against the published table: the demo gives the committed final-time MSE
+    (docs/results/burgers-lite-calibrated, experiment `calibrated`: forward run, EKF and EnKF of every model,
+    calibrated Q and P0) to 3 digits, and says that it used the shipped models."""
+    doc, out, folder = shipped_demo
     committed = {(r["model"], r["filter"]): r["final_mse_mean"]
                  for r in load_results(BURGERS_TABLE)["records"] if r["experiment"] == "calibrated"}
-    doc = run_demo(tmp_path / "demo", progress=False)
     got = {(r["model"], r["filter"]): r["final_mse_mean"] for r in doc["records"]}
     assert set(got) == set(committed)
     for key, value in committed.items():
         assert got[key] == pytest.approx(value, rel=1e-3), (key, got[key], value)
     assert doc["config"]["shipped_models"] == list(MODEL_KINDS)
-    out = capsys.readouterr().out
-    assert "shipped with dks-gym" in out and "Koopman" in out and (tmp_path / "demo" / "demo.png").exists()
+    assert "shipped with dks-gym" in out and "Koopman" in out
+    assert (folder / "demo.png").exists() and (folder / "results.json.gz").exists()
+
+
+def test_the_shipped_burgers_models_reproduce_the_expected_scores(shipped_demo: tuple[dict, str, Path]) -> None:
+    """The package's expected-score table (dks_gym.evaluation.expected), Burgers rows: relative L2 error, its
+    95 % interval and the 95 % coverage of each model and filter, recomputed from freshly generated data with
+    the shipped files, agree to three significant digits (a perturbed shipped weight fails here)."""
+    from dks_gym.evaluation.expected import compare_expected, scores_of
+
+    doc, _, _ = shipped_demo
+    assert compare_expected("burgers", scores_of(doc["records"])) == []
 
 
 CFD_HOME = Path(os.environ.get("DKS_GYM_CFD_HOME", "/nonexistent"))

@@ -2,8 +2,9 @@
 
 * the decoder-Jacobian variance diag(G P G^T) against the Monte-Carlo variance of decoded latent draws;
 * on a problem where the model is exact (linear latent dynamics with the true process noise, a linear
-  decoder, the env's own measurement noise), the 95 % coverage is 0.95 and the NEES 1 within sampling error,
-  and a filter told a too-small process noise fails the same check;
+  decoder, the env's own measurement noise), the 95 % coverage is 0.95, the NEES and the spread-skill ratio 1
+  within sampling error and the EnKF's rank histograms flat, and a filter told a too-small process noise fails
+  the same check;
 * the closed-form Gaussian CRPS against a numerical integral of its definition;
 * the EnKF's std against the spread of its members decoded here; the reconstruction variance against a
   direct numpy computation; the wrappers' infos, the results records and the figure.
@@ -20,7 +21,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from scipy import integrate
+from scipy import integrate, stats
 
 import dks_gym  # noqa: F401  (registers the env ids)
 from dks_gym.assimilation import (
@@ -164,6 +165,14 @@ def _calibration(result) -> tuple[float, float, float, float]:
     return float(cov.mean()), se(cov), float(nees.mean()), se(nees)
 
 
+def _spread_skill(result) -> tuple[float, float]:
+    """The spread-skill ratio over frames 1.. and trajectories (squares averaged first), and its standard
+    error across trajectories."""
+    predicted, mse = result.step_predicted_mse[:, 1:], result.step_mse[:, 1:]
+    per_trajectory = np.sqrt(predicted.sum(1) / mse.sum(1))
+    return math.sqrt(predicted.sum() / mse.sum()), float(per_trajectory.std(ddof=1) / math.sqrt(len(mse)))
+
+
 def test_coverage_and_nees_are_calibrated_where_the_model_is_exact(tmp_path: Path) -> None:
     model, path = _linear_problem(tmp_path)
     config = AssimilationConfig(filter=FilterConfig(kind="ekf", initial="exact", P0=1e-6, Q=Q_TRUE),
@@ -172,15 +181,32 @@ def test_coverage_and_nees_are_calibrated_where_the_model_is_exact(tmp_path: Pat
     cov, cov_se, nees, nees_se = _calibration(result)
     assert abs(cov - 0.95) < max(4 * cov_se, 0.01), (cov, cov_se)
     assert abs(nees - 1.0) < max(4 * nees_se, 0.05), (nees, nees_se)
+    ratio, ratio_se = _spread_skill(result)  # measured 1.012 (0.018)
+    assert abs(ratio - 1.0) < max(4 * ratio_se, 0.03), (ratio, ratio_se)
+    # One trajectory's ratio at one frame is biased high (E[1/RMSE] > 1/sqrt(E[MSE]); 4 latent dimensions):
+    # why the records average the squares over the trajectories before dividing. Measured 1.27.
+    assert np.mean(np.sqrt(result.step_predicted_mse / result.step_mse)[:, 1:]) > ratio + 0.15
+    # The record's ratio at the final frame, from the final fields directly.
+    err2 = ((result.final_estimate - result.final_truth).astype(np.float64) ** 2).mean(axis=(1, 2))
+    var = (result.final_estimate_std.astype(np.float64) ** 2).mean(axis=(1, 2))
+    assert result.spread_skill[-1] == pytest.approx(math.sqrt(var.mean() / err2.mean()), rel=1e-5)
     # The check can fail: a filter that assumes 100x less process noise is overconfident.
     wrong = run_assimilation(model, path, config.replace(Q=Q_TRUE / 100), dtype=torch.float64)
     cov_w, _, nees_w, _ = _calibration(wrong)
     assert cov_w < cov - 0.1 and nees_w > 2 * nees, (cov_w, nees_w)
-    # The EnKF's decoded spread is calibrated too, within its sampling error at 200 members.
+    assert _spread_skill(wrong)[0] < 0.5  # measured 0.13
+    # The EnKF's decoded spread is calibrated too, within its sampling error at 200 members, and the truth is
+    # one more member: its rank among the 200 is uniform (measured p = 0.40 at the sensors, 0.44 at the cells).
     enkf = run_assimilation(model, path, config.replace(kind="enkf", n_members=200), dtype=torch.float64)
     cov_e, cov_e_se, nees_e, nees_e_se = _calibration(enkf)
     assert abs(cov_e - 0.95) < max(4 * cov_e_se, 0.02), (cov_e, cov_e_se)
     assert abs(nees_e - 1.0) < max(4 * nees_e_se, 0.1), (nees_e, nees_e_se)
+    ratio_e, ratio_e_se = _spread_skill(enkf)
+    assert abs(ratio_e - 1.0) < max(4 * ratio_e_se, 0.03), (ratio_e, ratio_e_se)
+    steps, sensors = enkf.step_mse.shape[1] - 1, config.n_sensors
+    for counts, cells in ((enkf.rank_histogram_sensors, sensors), (enkf.rank_histogram_cells, 8)):
+        assert counts.shape == (201,) and counts.sum() == len(enkf.trajectories) * steps * cells
+        assert stats.chisquare(counts).pvalue > 0.01, counts
 
 
 def test_tuned_q_scale_recovers_the_true_process_noise(tmp_path: Path) -> None:
@@ -264,6 +290,9 @@ def test_latent_filter_info_has_estimate_std(models: dict, kind: str, filt: str)
         assert std.shape == info["estimate"].shape == (1, 1024) and std.dtype == np.float32
         assert np.all(np.isfinite(std)) and np.all(std >= 0) and np.any(std > 0)
         assert 0.0 <= info["coverage"] <= 1.0 and info["nees"] >= 0 and info["crps"] >= 0
+        # spread over skill: sqrt(mean std^2 / MSE) over the scored cells
+        assert info["spread_skill"] == pytest.approx(math.sqrt(np.mean(std.astype(np.float64) ** 2) / info["mse"]),
+                                                     rel=1e-4)
     env.close()
 
 
@@ -319,13 +348,13 @@ def test_vector_env_infos_and_switching_uncertainty_off(models: dict) -> None:
     _, _, _, _, infos = venv.step(np.zeros(3, dtype=np.int64))
     assert infos["estimate_std"].shape == infos["estimate"].shape == (3, 1, 1024)
     assert np.all(infos["estimate_std"] >= 0) and np.all(np.isfinite(infos["estimate_std"]))
-    for name in ("coverage", "nees", "crps"):
+    for name in ("coverage", "nees", "crps", "spread_skill"):
         assert infos[name].shape == (3,)
     venv.close()
     off = LatentFilterVectorEnv("burgers", 2, model=models["mlp"], filter="ekf", preset="small", uncertainty=False)
     off.reset(seed=0)
     infos = off.step(np.zeros(2, dtype=np.int64))[4]
-    assert not {"estimate_std", "coverage", "nees", "crps"} & set(infos)
+    assert not {"estimate_std", "coverage", "nees", "crps", "spread_skill"} & set(infos)
     off.close()
     env = LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=models["mlp"], uncertainty=False)
     env.reset(seed=0)

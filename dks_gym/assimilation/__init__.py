@@ -11,6 +11,8 @@
 * :mod:`~dks_gym.assimilation.tuning`: the scale of the calibrated process noise (:func:`calibrate_process_noise`);
 * :mod:`~dks_gym.assimilation.uncertainty`: the predictive std of the decoded estimate (``estimate_std``),
   :func:`reconstruction_variance` and the scores (:func:`gaussian_scores`, :func:`gaussian_crps`).
+* :mod:`~dks_gym.assimilation.spread`: the spread diagnostics (the spread-skill ratio, the EnKF's rank
+  histograms of the truth among its decoded members).
 """
 
 from .config import (

@@ -4,7 +4,8 @@
 current episodes of B ``SensingEnv`` objects (their mu, noise sigma, sensors and initial condition),
 and each :meth:`Assimilation.step` forecasts, updates with the readings, decodes and scores (Eqs. 13-18);
 with ``uncertainty=True`` it also decodes the filter's covariance into a per-cell predictive standard
-deviation and scores it (:mod:`dks_gym.assimilation.uncertainty`).
+deviation and scores it (:mod:`dks_gym.assimilation.uncertainty`; the EnKF also ranks the truth among its
+decoded members, :mod:`dks_gym.assimilation.spread`).
 The wrappers call it once per env step; :func:`~dks_gym.assimilation.run_episodes` calls it over whole
 episodes. Its filter state is private: callers see snapshots and the belief.
 """
@@ -27,7 +28,8 @@ from ..models import FilterableModel, model_device, model_dtype
 from ..threads import torch_threads
 from .config import FilterConfig
 from .errors import ctf_score, field_errors, relative_l2_errors
-from .uncertainty import ensemble_variance, gaussian_scores, jacobian_variance
+from .spread import rank_cells, spread_skill, truth_ranks
+from .uncertainty import decoded_ensemble, gaussian_scores, jacobian_variance
 
 # Per model, per dataset file: the approximate initial latent state (it costs one pass over the train split).
 _APPROXIMATE_CACHE: "weakref.WeakKeyDictionary[FilterableModel, dict[str, torch.Tensor]]" = weakref.WeakKeyDictionary()
@@ -63,7 +65,8 @@ class Snapshot:
     latent_mean: np.ndarray  # (B, r)
     diagnostics: dict[str, np.ndarray] = field(default_factory=dict)  # gain_norm, spread, (EKF) forecast_norm
     # With uncertainty (else None): the predictive std of every cell (B, C, *grid), physical units, and its
-    # scores over the scored channels (B,): 95 % coverage, mean NEES per cell, mean Gaussian CRPS.
+    # scores over the scored channels (B,): 95 % coverage, mean NEES per cell, mean Gaussian CRPS, the MSE
+    # the std predicts (mean std^2).
     estimate_std: torch.Tensor | None = None
     coverage: np.ndarray | None = None
     nees: np.ndarray | None = None
@@ -73,6 +76,18 @@ class Snapshot:
     # model extrapolates there: flagged, not hidden), its relative error |mu^ - mu| / mu, whether the true
     # mu lies in the interval, and the estimated coordinate's std over its prior's (near 1: not identified).
     parameter: dict[str, np.ndarray] | None = None
+    predicted_mse: np.ndarray | None = None
+    # EnKF with uncertainty, after a step (else None): the rank of the truth among the n decoded members
+    # (0..n, :func:`~dks_gym.assimilation.spread.truth_ranks`) at the sensors read (B, m) and at the fixed
+    # cells of :func:`~dks_gym.assimilation.spread.rank_cells` (B, k).
+    sensor_ranks: np.ndarray | None = None
+    cell_ranks: np.ndarray | None = None
+
+    @property
+    def spread_skill(self) -> np.ndarray | None:
+        """(B,) spread over skill of each element, ``sqrt(predicted_mse / mse)`` (None without uncertainty);
+        biased high for one frame of one trajectory: average the squares first (:mod:`~dks_gym.assimilation.spread`)."""
+        return None if self.predicted_mse is None else spread_skill(self.predicted_mse[None], self.mse[None])
 
     @property
     def score(self) -> np.ndarray:
@@ -124,6 +139,7 @@ class Assimilation:
         self._true_mu: np.ndarray | None = None
         self._coordinate: ParameterCoordinate | None = None  # set while mu is estimated
         self._prior_std = 1.0  # the estimated coordinate's prior std
+        self._ranked: tuple[int, np.ndarray, np.random.Generator] | None = None  # EnKF: offset, cells, tie-breaks
 
     @property
     def filter(self) -> EKF | EnKF | None:
@@ -193,6 +209,12 @@ class Assimilation:
         self._filter.reset(*self.config.initial_state(self.model, z0.to(self.device, self.dtype).clone(), sigma,
                                                       n_sensors, prior))
         self._lag, self._k, self._now = _latency(envs), 0, self._filter
+        self._ranked = None
+        if self.uncertainty and isinstance(self._filter, EnKF):
+            bench = envs[0].benchmark
+            # Ties of truth and members are broken by a generator of its own: the filter's draws stay as they were.
+            self._ranked = (bench.observed_index * bench.n_cells, rank_cells(bench, envs[0].fluid_mask),
+                            np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1,))))
         return self._snapshot(envs)
 
     @torch_threads("assimilate")
@@ -236,10 +258,17 @@ class Assimilation:
                         relative_l2=relative, channel_relative_l2=per_channel,
                         latent_mean=self._latent_mean().cpu().numpy())
         if self.uncertainty:
-            snap.estimate_std = self.predictive_std(estimate)
+            cells = self._checked_cells() if with_diagnostics and self._ranked is not None else None
+            snap.estimate_std, members = self._predictive(estimate, cells)
             scores = gaussian_scores(estimate, snap.estimate_std, truth, bench.scored_indices,
                                      envs[0].dataset.stats_std)
             snap.coverage, snap.nees, snap.crps = scores["coverage"], scores["nees"], scores["crps"]
+            snap.predicted_mse = scores["predicted_mse"]
+            if members is not None:
+                at = truth.flatten(1).gather(1, cells)
+                ranks = truth_ranks(members.cpu().double().numpy(), at.cpu().double().numpy(), self._ranked[2])
+                m = self._sensors.current.shape[1]
+                snap.sensor_ranks, snap.cell_ranks = ranks[:, :m], ranks[:, m:]
         if self._coordinate is not None:
             snap.parameter = self.parameter_scores()
         if with_diagnostics and stepped:
@@ -254,6 +283,12 @@ class Assimilation:
                 snap.diagnostics["forecast_norm"] = np.full(batch, np.nan)
         return snap
 
+    @property
+    def rank_cells(self) -> np.ndarray | None:
+        """The fixed cells the EnKF's rank histograms check (flat indices into (C, *grid),
+        :func:`~dks_gym.assimilation.spread.rank_cells`); None for the other filters or without uncertainty."""
+        return None if self._ranked is None else self._ranked[1]
+
     def predictive_std(self, estimate: torch.Tensor | None = None) -> torch.Tensor:
         """The predictive standard deviation of every decoded cell, (B, C, *grid), physical units.
 
@@ -263,18 +298,33 @@ class Assimilation:
         """
         if self._now is None:
             raise RuntimeError("call start() before predictive_std()")
+        return self._predictive(estimate)[0]
+
+    def _checked_cells(self) -> torch.Tensor:
+        """(B, m + k) the cells the EnKF's rank histograms check, flat field indices: the sensors read at this
+        frame (on the observed channel), then the fixed cells."""
+        offset, fixed, _ = self._ranked
+        sensors = offset + np.asarray(self._sensors.current, dtype=np.int64)
+        cells = np.concatenate([sensors, np.broadcast_to(fixed, (len(sensors), len(fixed)))], axis=1)
+        return torch.as_tensor(cells, device=self.device)
+
+    def _predictive(self, estimate: torch.Tensor | None,
+                    cells: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`predictive_std` and, for the EnKF with ``cells`` (B, k), its decoded members there (B, n, k)."""
+        members = None
         with torch.no_grad():
             r = self.model.r  # the model's part of the state (the rest: estimated sensor biases)
             if estimate is None:
                 estimate = self.model.decode(self._latent_mean(), self._mu)
             if isinstance(self._now, EnKF):
-                var = ensemble_variance(self.model, self._now.ensemble[..., :r], self._mu, center=estimate)
+                var, members = decoded_ensemble(self.model, self._now.ensemble[..., :r], self._mu, center=estimate,
+                                                cells=cells)
             else:
                 var = jacobian_variance(self.model, self._now.mean[:, :r], self._mu, self._now.cov[:, :r, :r])
             var = var.reshape(estimate.shape)
             if self.reconstruction_var is not None:
                 var = var + self.reconstruction_var.to(var)
-            return var.clamp_min(0.0).sqrt()
+            return var.clamp_min(0.0).sqrt(), members
 
     def parameter_scores(self) -> dict[str, np.ndarray]:
         """The estimated mu per element and how it fares (see :attr:`Snapshot.parameter`)."""

@@ -16,7 +16,9 @@ Per episode and frame it records the Eq. 18 MSE of the decoded mean (frame 0 is 
 its relative L2 error (:func:`~dks_gym.assimilation.relative_l2_errors`),
 the forecast Jacobian norm ``||F_k||_2`` of each step (EKF and forward run) and the wall time of each
 batched filter step (CUDA synchronized); with ``uncertainty=True`` (default) also the scores of the
-predictive std per frame (95 % coverage, mean NEES per cell, Gaussian CRPS) and the final std field.
+predictive std per frame (95 % coverage, mean NEES per cell, Gaussian CRPS, the MSE it predicts: the
+spread-skill ratio), the final std field and, for the EnKF, the rank histograms of the truth among the
+decoded members at the sensors and at fixed cells over frames 1..n_t-1 (:mod:`~dks_gym.assimilation.spread`).
 
 The loop is also how ``Q="calibrated"`` gets its scale (:mod:`~dks_gym.assimilation.tuning`, run at the end of
 training and by ``dks-gym calibrate``, never by the loop itself).
@@ -38,6 +40,7 @@ from ..models import FilterableModel
 from .config import AssimilationConfig
 from .core import Assimilation
 from .errors import field_errors
+from .spread import rank_histogram, spread_skill
 
 
 @dataclass
@@ -62,6 +65,14 @@ class AssimilationResult:
     step_coverage: np.ndarray | None = None
     step_nees: np.ndarray | None = None
     step_crps: np.ndarray | None = None
+    # The MSE the std predicts, the mean over the scored cells of std^2, (B, n_t): see ``spread_skill``.
+    step_predicted_mse: np.ndarray | None = None
+    # EnKF with uncertainty (else None): how often the truth ranked 0..n among the n decoded members, (n + 1,),
+    # over every episode and frame 1..n_t-1, at the sensors read and at the fixed cells ``rank_cells`` (k,)
+    # (flat indices into (C, *grid), :func:`~dks_gym.assimilation.spread.rank_cells`).
+    rank_histogram_sensors: np.ndarray | None = None
+    rank_histogram_cells: np.ndarray | None = None
+    rank_cells: np.ndarray | None = None
     final_estimate_std: np.ndarray | None = None  # (B, C, *grid) predictive std at the final frame
     # Per scored channel (named in ``channels``), at the final frame: Eq. 18 in physical units and over the
     # standardized channel (divided by the channel's data std), (B, n_scored). Their mean over channels is
@@ -139,6 +150,12 @@ class AssimilationResult:
     def final_crps_mean(self) -> float | None:
         """Gaussian CRPS at the final frame, mean over trajectories (None without uncertainty)."""
         return self._final_mean("step_crps")
+
+    @property
+    def spread_skill(self) -> np.ndarray | None:
+        """(n_t,) the spread-skill ratio at every frame, ``sqrt(mean_b predicted MSE / mean_b MSE)`` over the
+        trajectories (:func:`~dks_gym.assimilation.spread.spread_skill`; None without uncertainty)."""
+        return None if self.step_predicted_mse is None else spread_skill(self.step_predicted_mse, self.step_mse)
 
 
 def episode_envs(dataset: Dataset, trajectories: np.ndarray, noise_seeds: np.ndarray, *, split: str,
@@ -279,8 +296,9 @@ def run_episodes(
     batch = len(envs)
     step_mse, step_rel_l2 = np.empty((batch, n_t), dtype=np.float64), np.empty((batch, n_t), dtype=np.float64)
     step_mse[:, 0], step_rel_l2[:, 0] = snap.mse, snap.relative_l2
-    scores = {name: np.empty((batch, n_t), dtype=np.float64) for name in ("coverage", "nees", "crps")} \
-        if uncertainty else {}
+    scores = {name: np.empty((batch, n_t), dtype=np.float64) for name in ("coverage", "nees", "crps",
+                                                                           "predicted_mse")} if uncertainty else {}
+    ranks: dict[str, list[np.ndarray]] = {"sensor_ranks": [], "cell_ranks": []}
     for name, values in scores.items():
         values[:, 0] = getattr(snap, name)
     parameter = None if snap.parameter is None else {
@@ -297,17 +315,28 @@ def run_episodes(
             values[:, k] = getattr(snap, name)
         for name, values in (parameter or {}).items():
             values[:, k] = snap.parameter[name]
+        for name, seen in ranks.items():
+            if getattr(snap, name) is not None:
+                seen.append(getattr(snap, name))
     bar.close()
-    result = _result(model, config, envs, core, snap, (step_mse, step_rel_l2), scores, source.extras(), start)
+    histograms = {}
+    if ranks["sensor_ranks"]:  # the EnKF's (with uncertainty): counted into n + 1 bins
+        n = config.filter.n_members
+        histograms = {"rank_histogram_sensors": rank_histogram(np.stack(ranks["sensor_ranks"]), n),
+                      "rank_histogram_cells": rank_histogram(np.stack(ranks["cell_ranks"]), n),
+                      "rank_cells": core.rank_cells}
+    result = _result(model, config, envs, core, snap, (step_mse, step_rel_l2), scores, histograms,
+                     source.extras(), start)
     result.step_parameter = parameter
     return result
 
 
 def _result(model: FilterableModel, config: AssimilationConfig, envs: Sequence[SensingEnv], core: Assimilation,
             snap: Any, errors: tuple[np.ndarray, np.ndarray], scores: dict[str, np.ndarray],
-            extras: dict[str, Any], start: float) -> AssimilationResult:
+            histograms: dict[str, np.ndarray], extras: dict[str, Any], start: float) -> AssimilationResult:
     """The :class:`AssimilationResult` of a finished loop: the records, the final fields and their errors
-    (``errors``: the MSE and the relative L2 error per episode and frame)."""
+    (``errors``: the MSE and the relative L2 error per episode and frame; ``histograms``: the EnKF's rank
+    histograms and their fixed cells, or nothing)."""
     step_mse, step_rel_l2 = errors
     history = core.history()
     bench, truth = envs[0].benchmark, core.truth(envs)
@@ -324,6 +353,8 @@ def _result(model: FilterableModel, config: AssimilationConfig, envs: Sequence[S
         final_estimate=snap.estimate.cpu().numpy().astype(np.float32), final_truth=truth,
         wall_time=time.perf_counter() - start, extras=extras,
         step_coverage=scores.get("coverage"), step_nees=scores.get("nees"), step_crps=scores.get("crps"),
+        step_predicted_mse=scores.get("predicted_mse"),
+        **histograms,
         final_estimate_std=None if snap.estimate_std is None else snap.estimate_std.cpu().numpy().astype(np.float32),
         channels=tuple(bench.scored_channels), final_channel_mse=np.stack([m for m, _ in per_channel], axis=1),
         final_channel_nmse=np.stack([n for _, n in per_channel], axis=1),

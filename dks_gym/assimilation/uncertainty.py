@@ -14,7 +14,7 @@ plus, when given, the decoder's own reconstruction-error variance per cell (:fun
 the filter's covariance says how unsure the latent state is, not how well the decoder can represent the
 field at all. The scores of a Gaussian prediction ``N(mean, std^2)`` against the truth, averaged over the
 cells of the scored channels (as the Eq. 18 MSE is): :func:`gaussian_scores` (coverage of the central 95 %
-interval, NEES per cell, CRPS, :func:`gaussian_crps`).
+interval, NEES per cell, CRPS, :func:`gaussian_crps`, and the MSE the std predicts).
 """
 
 from __future__ import annotations
@@ -129,6 +129,15 @@ def ensemble_variance(model: FilterableModel, ensemble: torch.Tensor, mu: torch.
     Every member is decoded, in chunks of rows of at most :data:`CHUNK_NUMBERS` numbers; the sums are
     shifted by ``center`` (B, C, *grid) (e.g. the decoded mean; default the first member) for accuracy.
     """
+    return decoded_ensemble(model, ensemble, mu, center)[0]
+
+
+def decoded_ensemble(model: FilterableModel, ensemble: torch.Tensor, mu: torch.Tensor,
+                     center: torch.Tensor | None = None,
+                     cells: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`ensemble_variance` and, from the same decodes, the members' values at ``cells`` (B, k), flat
+    indices into each element's decoded field (``channel * n_cells + cell``): ``(var, values (B, n, k))``
+    (values None without cells). The rank histograms read the members there."""
     batch, n, r = ensemble.shape
     rows = ensemble.detach().reshape(batch * n, r)
     rows_mu = torch.as_tensor(mu).repeat_interleave(n, dim=0)
@@ -141,11 +150,17 @@ def ensemble_variance(model: FilterableModel, ensemble: torch.Tensor, mu: torch.
         step = max(1, CHUNK_NUMBERS // n_out)
         s1 = torch.zeros_like(shift)
         s2 = torch.zeros_like(shift)
+        at = None if cells is None else torch.as_tensor(cells, device=rows.device).repeat_interleave(n, dim=0)
+        values = None if cells is None else torch.empty(batch * n, at.shape[1], dtype=shift.dtype, device=rows.device)
         for s in range(0, batch * n, step):
-            d = model.decode(rows[s:s + step], rows_mu[s:s + step]).flatten(2) - shift[owner[s:s + step]]
+            decoded = model.decode(rows[s:s + step], rows_mu[s:s + step]).flatten(2)
+            if values is not None:
+                values[s:s + step] = decoded.flatten(1).gather(1, at[s:s + step])
+            d = decoded - shift[owner[s:s + step]]
             s1.index_add_(0, owner[s:s + step], d)
             s2.index_add_(0, owner[s:s + step], d.pow(2))
-    return ((s2 - s1.pow(2) / n) / (n - 1)).clamp_min(0.0)
+    var = ((s2 - s1.pow(2) / n) / (n - 1)).clamp_min(0.0)
+    return var, None if values is None else values.reshape(batch, n, -1)
 
 
 def reconstruction_variance(model: LatentModel, dataset: Dataset | str, trajectories: Sequence[int] | np.ndarray,
@@ -183,7 +198,9 @@ def gaussian_scores(estimate: torch.Tensor, std: torch.Tensor, truth: torch.Tens
     * ``coverage``: the fraction of cells whose truth lies in the central 95 % interval ``estimate +- 1.96 std``
       (0.95 when calibrated);
     * ``nees``: the mean over cells of ``(truth - estimate)^2 / std^2`` (1 when calibrated);
-    * ``crps``: the mean over cells of :func:`gaussian_crps` (physical units; lower is better).
+    * ``crps``: the mean over cells of :func:`gaussian_crps` (physical units; lower is better);
+    * ``predicted_mse``: the mean over cells of ``std^2``, the MSE the std predicts (Eq. 18 when calibrated;
+      the spread-skill ratio compares them, :mod:`~dks_gym.assimilation.spread`).
 
     ``std`` is floored at :data:`STD_FLOOR` times ``channel_std`` (C,) (default 1) so that a cell without
     variance does not divide by zero. Returns (B,) float64 arrays.
@@ -198,13 +215,15 @@ def gaussian_scores(estimate: torch.Tensor, std: torch.Tensor, truth: torch.Tens
     err = x - mean
     return {"coverage": (err.abs() <= Z95 * s).double().mean(dim=(1, 2)).cpu().numpy(),
             "nees": (err / s).pow(2).mean(dim=(1, 2)).cpu().numpy(),
-            "crps": gaussian_crps(x, mean, s).mean(dim=(1, 2)).cpu().numpy()}
+            "crps": gaussian_crps(x, mean, s).mean(dim=(1, 2)).cpu().numpy(),
+            "predicted_mse": s.pow(2).mean(dim=(1, 2)).cpu().numpy()}
 
 
 __all__ = [
     "CHUNK_NUMBERS",
     "STD_FLOOR",
     "Z95",
+    "decoded_ensemble",
     "ensemble_variance",
     "gaussian_crps",
     "gaussian_scores",

@@ -1,4 +1,5 @@
-"""Click commands ``reproduce``, ``compare`` and ``demo`` (registered on ``dks-gym`` with ``main.add_command``)."""
+"""Click commands ``reproduce``, ``compare``, ``demo`` and ``expected`` (registered on ``dks-gym`` with
+``main.add_command``)."""
 
 from __future__ import annotations
 
@@ -105,6 +106,52 @@ def demo_command(out: Path | None, device: str, train: bool) -> None:
         raise click.ClickException(str(exc)) from exc
 
 
-COMMANDS = (reproduce_command, compare_command, demo_command)
+@click.command("expected")
+@click.argument("benchmark", required=False, type=click.Choice(["burgers", "cylinder", "dambreak"],
+                                                               case_sensitive=False))
+@click.option("--check", is_flag=True,
+              help="Rerun the table's runs with the shipped models on the local paper data and compare (exit 1 on "
+                   "a difference in the third significant digit).")
+@click.option("--markdown", is_flag=True, help="Print docs/results/expected.md (every benchmark).")
+@click.option("--device", type=click.Choice(["cpu", "cuda"]), default="cpu", show_default=True)
+def expected_command(benchmark: str | None, check: bool, markdown: bool, device: str) -> None:
+    """Print the shipped models' expected scores under BENCHMARK's protocol; --check reruns and compares them.
 
-__all__ = ["COMMANDS", "compare_command", "demo_command", "reproduce_command"]
+    Relative L2 error of the final frame (mean over the test trajectories, 95 % bootstrap interval), its score
+    and the 95 % coverage of the predictive std, for each model and filter (calibrated Q and P0, EnKF n = 20).
+    """
+    from tqdm.auto import tqdm
+
+    from ..dataset import load_dataset
+    from .expected import compare_expected, expected_markdown, expected_table, measure_expected, scores_of
+
+    if markdown or benchmark is None:
+        if check:
+            raise click.UsageError("--check needs a BENCHMARK")
+        click.echo(expected_markdown(), nl=False)
+        return
+    benchmark = benchmark.lower()
+    if not check:
+        click.echo(expected_table(benchmark))
+        return
+    try:
+        ds = load_dataset(benchmark, "paper")
+        bar = tqdm(total=12, desc=f"{benchmark}: shipped models x filters", unit="run")
+        records = measure_expected(benchmark, ds, device=device, on_record=lambda rec: bar.update(1))
+        bar.close()
+    except _errors() as exc:
+        raise click.ClickException(str(exc)) from exc
+    measured = scores_of(records)
+    click.echo(expected_table(benchmark, measured))
+    mismatches = compare_expected(benchmark, measured)
+    for mismatch in mismatches:
+        click.echo(f"MISMATCH {mismatch}")
+    click.echo(f"{benchmark}: {'reproduces' if not mismatches else 'does NOT reproduce'} the expected scores "
+               f"({len(mismatches)} numbers differ beyond the third significant digit)")
+    if mismatches:
+        raise SystemExit(1)
+
+
+COMMANDS = (reproduce_command, compare_command, demo_command, expected_command)
+
+__all__ = ["COMMANDS", "compare_command", "demo_command", "expected_command", "reproduce_command"]

@@ -21,10 +21,11 @@ from ..assimilation import AssimilationConfig
 from ..dataset import Dataset
 from ..models import LatentModel
 from .conformance import stamp_protocol
+from .expected import run_filters
 from .figures import MODEL_LABELS, MODEL_ORDER, normalized_bar_chart
 from .formatting import MISSING, fixed, mean_std, relative_score, text_table
 from .reproduce import shared_config
-from .results import RESULTS_FILE, Record, make_record, new_results, save_results
+from .results import RESULTS_FILE, Record, new_results, save_results
 
 DEMO_BENCHMARK = "burgers"
 DEMO_FILTERS = ("forward", "ekf", "enkf")
@@ -112,7 +113,6 @@ def run_demo(
     (resuming or reusing what is there) instead of taking the shipped ones."""
     from tqdm.auto import tqdm
 
-    from ..assimilation import run_assimilation
     from ..dataset import DatasetMissing, generate_dataset, load_dataset
     from ..home import data_home
     from ..models.checkpoint import dataset_identity
@@ -129,15 +129,16 @@ def run_demo(
     shipped = [k for k, m in models.items() if is_shipped(getattr(m, "checkpoint_path", None))]
     trained = time.perf_counter()
 
-    records = []
     base = AssimilationConfig()  # the defaults a user meets: calibrated Q and P0
-    jobs = [(kind, filt) for filt in DEMO_FILTERS for kind in MODEL_ORDER]
-    bar = tqdm(jobs, desc="assimilating (model x filter)", unit="run", disable=not progress, dynamic_ncols=True)
-    for kind, filt in bar:
-        bar.set_postfix_str(f"{kind} {filt}", refresh=False)
-        result = run_assimilation(models[kind], ds, base.replace(kind=filt), progress=progress,
-                                  description=f"{kind} {filt}")
-        records.append(make_record(result, experiment="demo", keep_curves=False))
+    bar = tqdm(total=len(DEMO_FILTERS) * len(models), desc="assimilating (model x filter)", unit="run",
+               disable=not progress, dynamic_ncols=True)
+
+    def advance(record: Record) -> None:
+        bar.set_postfix_str(f"{record['model']} {record['filter']}", refresh=False)
+        bar.update(1)
+
+    records = run_filters(models, ds, experiment="demo", filters=DEMO_FILTERS, base=base, on_record=advance,
+                          progress=progress)
     bar.close()
 
     config = dict(shared_config(base, ds, device), experiments=["demo"], wall_time_s=time.perf_counter() - start,

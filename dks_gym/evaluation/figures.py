@@ -8,6 +8,8 @@
 * :func:`timing_figure`: wall time per DA step per model and filter (Figs. 4, 6);
 * :func:`reconstruction_figure`: truth, estimate and error at the final time for one test trajectory,
   one model per row (Fig. 8 and the 2D/3D reconstructions; 3D shows the middle z slice);
+* :func:`spread_figure`: the spread-skill ratio over time per filter and the EnKF's rank histograms of the
+  truth, one row per model;
 * :func:`uncertainty_figure`: the predictive std of an estimate at chosen time steps: in 1D the estimate,
   the truth and the +-2 std band, in 2D (3D: the middle z slice) the std map beside the absolute-error map.
 
@@ -191,6 +193,62 @@ def timing_figure(records: Sequence[dict[str, Any]], path: str | Path, *, title:
     return save_figure(fig, path)
 
 
+def spread_figure(
+    rows: Sequence[tuple[str, dict[str, dict[str, Any] | None]]],
+    path: str | Path,
+    *,
+    time: np.ndarray | None = None,
+    title: str | None = None,
+) -> Path:
+    """Spread diagnostics, one panel row per model: rows of (model, {filter: record or None}).
+
+    Left, the spread-skill ratio ``per_step_spread_skill`` of each filter over frames 1..n_t-1 (log scale, 1
+    dashed: calibrated); middle and right, the EnKF's rank histograms of the truth at the sensors and at the
+    fixed cells (``rank_histogram_sensors``, ``rank_histogram_cells``) as frequency times n + 1 (1 dashed:
+    flat, calibrated). A panel without its field is left blank.
+    """
+    plt = _pyplot()
+    fig, axes = plt.subplots(len(rows), 3, figsize=(11.0, 2.3 * len(rows)), squeeze=False)
+    styles = {"ekf": ("-", "EKF"), "enkf": ("--", "EnKF"), "forward": (":", "forward run")}
+    for i, (model, by_filter) in enumerate(rows):
+        color = MODEL_COLORS.get(model, "grey")
+        ax = axes[i][0]
+        ratios = {filt: np.array(rec["per_step_spread_skill"], dtype=float)[1:] for filt, rec in by_filter.items()
+                  if rec is not None and rec.get("per_step_spread_skill")}
+        for filt, ratio in ratios.items():
+            t = np.arange(1, len(ratio) + 1) if time is None else np.asarray(time)[1:len(ratio) + 1]
+            ax.plot(t, ratio, styles[filt][0], color=color, lw=1.5, label=styles[filt][1])
+        if ratios:
+            ax.axhline(1.0, color="k", lw=0.8, ls=":")
+            ax.set_yscale("log")
+            low, high = ax.get_ylim()  # plain numbers at the ticks inside the data's range (over 1 vs under 1)
+            ax.set_yticks([v for v in (0.1, 0.25, 0.5, 0.7, 1.0, 1.4, 2.0, 4.0, 10.0) if low <= v <= high])
+            ax.yaxis.set_major_formatter("{x:g}")
+            ax.yaxis.set_minor_formatter("")
+            ax.set_ylabel(f"{MODEL_LABELS.get(model, model)}\nspread / skill")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+            ax.set_xlabel("time" if time is not None else "frame")
+        else:
+            ax.set_axis_off()
+        for j, (name, where) in enumerate((("rank_histogram_sensors", "sensors"), ("rank_histogram_cells",
+                                                                                   "fixed cells")), start=1):
+            ax, counts = axes[i][j], (by_filter.get("enkf") or {}).get(name)
+            if not counts or not sum(counts):
+                ax.set_axis_off()
+                continue
+            freq = np.array(counts, dtype=float) / sum(counts) * len(counts)
+            ax.bar(np.arange(len(counts)), freq, width=1.0, color=color, edgecolor="k", linewidth=0.3)
+            ax.axhline(1.0, color="k", lw=0.8, ls="--")
+            ax.set_title(f"EnKF rank of the truth, {where}", fontsize=9)
+            ax.set_xlabel(f"rank among {len(counts) - 1} members")
+            ax.set_ylabel("frequency x (n + 1)")
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def _field_slice(field: np.ndarray) -> np.ndarray:
     """A 1D or 2D view of one channel: the field itself, or the middle z slice of a 3D field."""
     return field if field.ndim <= 2 else field[..., field.shape[-1] // 2]
@@ -340,6 +398,7 @@ __all__ = [
     "normalized_bar_chart",
     "normalized_values",
     "reconstruction_figure",
+    "spread_figure",
     "temporal_error_figure",
     "timing_figure",
     "uncertainty_figure",

@@ -22,7 +22,6 @@ A new experiment is one more :func:`~dks_gym.evaluation.experiment.register`-ed 
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +29,10 @@ import numpy as np
 
 from ..assimilation import AssimilationResult
 from ..dataset import Dataset
+from .claims import NEURAL, qualitative_checks
 from .experiment import BarChart, Experiment, Run, Section, register
-from .figures import MODEL_LABELS, MODEL_ORDER, reconstruction_figure, temporal_error_figure, timing_figure
+from .figures import MODEL_LABELS, MODEL_ORDER, reconstruction_figure, spread_figure, temporal_error_figure
+from .figures import timing_figure
 from .formatting import MISSING, fixed, percent, sci, sig
 from .paper import PAPER_DERIVED, PAPER_ENSEMBLE, PAPER_MULTISTEP, PAPER_OPERATOR_NORM
 from .results import Record
@@ -39,7 +40,6 @@ from .tabulate import DEFAULT_SCENARIO, Column, Records, Row, label, max_norm, m
 from .tabulate import mse_ci95, paper_mse, rel_l2, rel_l2_columns, tabulate
 
 MODELS = MODEL_ORDER  # koopman, pdmd, mlp, xlstm
-NEURAL = ("koopman", "mlp", "xlstm")  # the models sharing the encoder-decoder: only the latent map differs
 MODEL = Column("model", label)
 
 
@@ -57,42 +57,6 @@ def _scenario(**changes: Any) -> dict[str, Any]:
 
 
 # main --------------------------------------------------------------------------------------------------------
-def qualitative_checks(records: Records) -> list[tuple[str, bool | None, str]]:
-    """The paper's qualitative claims evaluated on the main experiment: (claim, holds or None, evidence)."""
-    checks: list[tuple[str, bool | None, str]] = []
-    for initial in ("approximate", "exact"):
-        ekf = {m: records.find(experiment="main", model=m, filter="ekf", initial=initial) for m in MODELS}
-        fwd = {m: records.find(experiment="main", model=m, filter="forward", initial=initial) for m in MODELS}
-        if not all(ekf.values()) or not all(fwd.values()):
-            continue
-        error = {m: ekf[m]["final_mse_mean"] for m in MODELS}
-
-        def lowest(models: tuple[str, ...]) -> str:
-            return min(models, key=lambda m: math.inf if error[m] is None else error[m])
-
-        checks.append((f"Koopman has the lowest EKF error ({initial} IC)", lowest(MODELS) == "koopman",
-                       ", ".join(f"{MODEL_LABELS[m]} {sci(error[m])}" for m in MODELS)))
-        claim = f"Koopman has the lowest EKF error of the three models sharing the encoder-decoder ({initial} IC)"
-        checks.append((claim, lowest(NEURAL) == "koopman",
-                       ", ".join(f"{MODEL_LABELS[m]} {sci(error[m])}" for m in NEURAL)))
-        for m, lowers in (("koopman", True), ("pdmd", True), ("mlp", False), ("xlstm", False)):
-            a, b = fwd[m]["final_mse_mean"], ekf[m]["final_mse_mean"]
-            holds = None if a is None or b is None else (b < a if lowers else b > a)
-            claim = (f"EKF lowers the error of {MODEL_LABELS[m]} ({initial} IC)" if lowers else
-                     f"EKF raises the error of {MODEL_LABELS[m]} ({initial} IC; paper: in most cases)")
-            checks.append((claim, holds, f"forward {sci(a)} -> EKF {sci(b)}"))
-    norms = {m: max(filter(None, [max_norm(r) for r in records.select(model=m, r=32, T=1)]), default=None)
-             for m in MODELS}
-    if norms["koopman"] is not None:
-        checks.append(("Koopman operator norm <= 1 (to 1e-5)", norms["koopman"] <= 1 + 1e-5,
-                       f"max ||K|| = {fixed(norms['koopman'], 6)}"))
-    for m in ("mlp", "xlstm"):
-        if norms[m] is not None:
-            checks.append((f"{MODEL_LABELS[m]} forecast Jacobian norm exceeds 1", norms[m] > 1,
-                           f"max_k ||F_k|| = {fixed(norms[m], 3)}"))
-    return checks
-
-
 @register
 class Main(Experiment):
     name = "main"
@@ -284,11 +248,32 @@ class Calibrated(Experiment):
                    Column("coverage, all frames", lambda r: fixed(over_steps(r["rec"], "per_step_coverage_mean"), 2)),
                    Column("NEES, all frames", lambda r: sig(over_steps(r["rec"], "per_step_nees_mean"))),
                    Column("NEES, final", lambda r: sig(r["rec"]["final_nees_mean"])),
-                   Column("CRPS, final", lambda r: sci(r["rec"]["final_crps_mean"]))]
-        return ["Scores of the calibrated filters' predictive std (`estimate_std`): the fraction of scored cells "
+                   Column("CRPS, final", lambda r: sci(r["rec"]["final_crps_mean"])),
+                   Column("spread-skill, final", lambda r: fixed(r["rec"].get("final_spread_skill"), 2), optional=True),
+                   Column("spread-skill, all frames", lambda r: fixed(over_steps(r["rec"], "per_step_spread_skill"), 2),
+                          optional=True)]
+        text = ["Scores of the calibrated filters' predictive std (`estimate_std`): the fraction of scored cells "
                 "inside the central 95 % interval (0.95 when calibrated), the mean NEES per cell (1 when "
                 "calibrated) and the Gaussian CRPS (physical units), at the final frame and averaged over frames "
                 "1 to the last.", tabulate(rows, columns)]
+        if any(r["rec"].get("final_spread_skill") is not None for r in rows):
+            text.insert(1, "Spread-skill: sqrt(mean std^2 / MSE), both over the scored cells and averaged over the "
+                           "test trajectories before dividing (1 when calibrated, below 1 overconfident); "
+                           "`figures/spread.png` draws it over time with the EnKF's rank histograms of the truth.")
+        return text
+
+    def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
+                dataset: Dataset | None = None) -> list[Path]:
+        rows = [(m, {f: records.find(experiment="calibrated", model=m, filter=f) for f in ("ekf", "enkf")})
+                for m in MODELS]
+        rows = [(m, recs) for m, recs in rows if any((r or {}).get("per_step_spread_skill") for r in recs.values())]
+        if not rows:  # records older than the spread diagnostics
+            return []
+        cfg = records.config
+        time_axis = cfg["t0"] + cfg["dt"] * np.arange(cfg["n_frames"]) if "dt" in cfg else None
+        return [spread_figure(rows, folder / "spread.png", time=time_axis,
+                              title=f"{records.benchmark}: calibrated filters, spread-skill ratio and EnKF rank "
+                                    "histograms")]
 
 
 @register
@@ -489,4 +474,4 @@ class Timing(Experiment):
         return written
 
 
-__all__ = ["MODELS", "qualitative_checks"]
+__all__ = ["MODELS"]

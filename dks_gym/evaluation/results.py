@@ -61,6 +61,15 @@ A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members, par
                                     resampled within trajectories when they repeat (noise seeds); the same for
                                     ``final_rel_l2_*`` and a placement record's ``time_mean_mse_*``
                                     (:mod:`~dks_gym.evaluation.intervals`); tables print them as stored
+    final_spread_skill, per_step_spread_skill   float | null, [n_t] | null   (optional) the spread-skill ratio
+                                    sqrt(mean over trajectories of the predicted MSE (mean std^2 over the scored
+                                    cells) / mean over trajectories of the MSE), at the final frame and per frame:
+                                    1 when calibrated, < 1 overconfident (:mod:`~dks_gym.assimilation.spread`);
+                                    null without uncertainty
+    rank_histogram_sensors, rank_histogram_cells   [n_members + 1] ints   (optional, EnKF with uncertainty) how
+                                    often the noise-free truth ranked 0..n among the decoded members, over every
+                                    trajectory and frame 1..n_t-1, at the sensors read and at 8 fixed fluid
+                                    cells (``spread.rank_cells``); flat when calibrated
 
 A record may carry ``protocol_deviations`` ([str]: the protocol fields its run leaves). ``protocol`` is
 optional, so the files of an older dks-gym stay valid under ``schema_version`` 1: it adds to the schema
@@ -82,7 +91,8 @@ import numpy as np
 from ..assimilation import ctf_score, parameter_summary
 from ..atomic import atomic_path
 from ..names import ESTIMATORS, FILTERS, MODEL_KINDS
-from .intervals import INTERVAL_SOURCES, interval_fields
+from .intervals import interval_fields
+from .record_fields import UNCERTAINTY_SCORES, ResultsError, check_list, check_optional_fields, is_number
 
 SCHEMA = "dks-gym-results"
 SCHEMA_VERSION = 1
@@ -96,8 +106,6 @@ RECORD_FILTERS = FILTERS + ("none",)  # "none": an estimator's record (no filter
 INITIALS = ("approximate", "exact")
 PARAMETERS = ("known", "estimate", "prior", "assumed")  # "assumed": a value given by the caller
 _REQUIRED_TOP = ("schema", "schema_version", "benchmark", "preset", "dataset", "config", "records")
-#: The scores of the predictive std a record may hold (``final_{name}_mean``, ``per_step_{name}_mean``).
-UNCERTAINTY_SCORES = ("coverage", "nees", "crps")
 _REQUIRED_RECORD = RECORD_KEY[:-1] + (
     "batch", "final_mse_mean", "final_mse_std", "per_step_mse_mean", "per_trajectory_final_mse",
     "max_forecast_norm", "da_step_seconds", "wall_time",
@@ -151,6 +159,10 @@ class Record(_RecordKey, total=False):
     final_mse_ci95: list[float] | None
     final_rel_l2_iqm: float | None
     final_rel_l2_ci95: list[float] | None
+    final_spread_skill: float | None
+    per_step_spread_skill: list[float | None] | None
+    rank_histogram_sensors: list[int]
+    rank_histogram_cells: list[int]
 
 
 class _DocumentRequired(TypedDict):
@@ -168,10 +180,6 @@ class ResultsDocument(_DocumentRequired, total=False):
 
     protocol: dict[str, Any]
     models: list[dict[str, Any]]
-
-
-class ResultsError(ValueError):
-    """A results file does not follow the schema; the message names the offending item."""
 
 
 # Building ----------------------------------------------------------------------------------------------
@@ -222,6 +230,12 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
         values = getattr(result, name, None)
         if values is not None:
             record[f"per_step_{name}_mean"] = _numbers(np.mean(values, axis=1))
+    ratio = getattr(result, "spread_skill", None)
+    record["final_spread_skill"] = None if ratio is None else _number(ratio[-1])
+    record["per_step_spread_skill"] = None if ratio is None else _numbers(ratio)
+    for name in ("rank_histogram_sensors", "rank_histogram_cells"):
+        if getattr(result, name, None) is not None:
+            record[name] = [int(c) for c in getattr(result, name)]
     if getattr(result, "step_rel_l2", None) is not None:
         record.update(relative_fields(result.step_rel_l2, result.final_channel_rel_l2, result.channels))
     if cfg.filter.parameter != "known":  # absent: the filter was told the true mu
@@ -282,43 +296,6 @@ def run_key(record: dict[str, Any]) -> tuple:
 
 
 # Validation ---------------------------------------------------------------------------------------------
-def _is_number(x: Any, *, nullable: bool = True) -> bool:
-    if x is None:
-        return nullable
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _check_list(rec: dict[str, Any], name: str, where: str, length: int | None,
-                what: str = "the record's batch") -> None:
-    values = rec[name]
-    if not isinstance(values, list) or not all(_is_number(v) for v in values):
-        raise ResultsError(f"{where}: {name!r} must be a list of numbers (null for non-finite), got {values!r:.80}")
-    if length is not None and len(values) != length:
-        raise ResultsError(f"{where}: {name!r} has {len(values)} entries but {what} is {length}")
-
-
-def _check_relative(rec: dict[str, Any], where: str) -> None:
-    """The optional relative L2 fields, where present (records older than them lack them)."""
-    for name in ("final_rel_l2_mean", "final_rel_l2_std", "final_score_mean"):
-        if not _is_number(rec.get(name)):
-            raise ResultsError(f"{where}: {name!r} must be a number or null, got {rec[name]!r}")
-    if "per_trajectory_final_rel_l2" in rec:
-        _check_list(rec, "per_trajectory_final_rel_l2", where, rec["batch"])
-    if "per_step_rel_l2_mean" in rec:
-        _check_list(rec, "per_step_rel_l2_mean", where, len(rec["per_step_mse_mean"]), "the number of frames")
-
-
-def _check_intervals(rec: dict[str, Any], where: str) -> None:
-    """The optional interval fields (``{prefix}_iqm``, ``{prefix}_ci95``), where present."""
-    for prefix, _ in INTERVAL_SOURCES:
-        if not _is_number(rec.get(name := f"{prefix}_iqm")):
-            raise ResultsError(f"{where}: {name!r} must be a number or null, got {rec[name]!r}")
-        name, b = f"{prefix}_ci95", rec.get(f"{prefix}_ci95")
-        if b is not None and not (isinstance(b, list) and len(b) == 2 and _is_number(b[0], nullable=False)
-                                  and _is_number(b[1], nullable=False) and b[0] <= b[1]):
-            raise ResultsError(f"{where}: {name!r} must be null or [low, high] with low <= high, got {b!r:.80}")
-
-
 def validate_record(rec: Any, where: str = "record") -> None:
     """Raise :class:`ResultsError` naming what is missing or malformed in one record."""
     if not isinstance(rec, dict):
@@ -332,7 +309,7 @@ def validate_record(rec: Any, where: str = "record") -> None:
                           ("parameter", PARAMETERS)):
         if rec.get(name, KEY_DEFAULTS.get(name)) not in allowed:
             raise ResultsError(f"{where}: {name!r} is {rec[name]!r}; expected one of {', '.join(allowed)}")
-    if not _is_number(rec["noise"], nullable=False) or rec["noise"] <= 0:
+    if not is_number(rec["noise"], nullable=False) or rec["noise"] <= 0:
         raise ResultsError(f"{where}: 'noise' must be a positive number, got {rec['noise']!r}")
     for name in ("r", "T", "batch"):
         if not isinstance(rec[name], int) or isinstance(rec[name], bool) or rec[name] < 1:
@@ -343,15 +320,15 @@ def validate_record(rec: Any, where: str = "record") -> None:
     elif rec["n_members"] is not None:
         raise ResultsError(f"{where}: 'n_members' must be null for filter {rec['filter']!r}")
     for name in ("final_mse_mean", "final_mse_std", "da_step_seconds", "wall_time"):
-        if not _is_number(rec[name]):
+        if not is_number(rec[name]):
             raise ResultsError(f"{where}: {name!r} must be a number or null, got {rec[name]!r}")
     batch = rec["batch"]
-    _check_list(rec, "per_trajectory_final_mse", where, batch)
-    _check_list(rec, "per_step_mse_mean", where, None)
+    check_list(rec, "per_trajectory_final_mse", where, batch)
+    check_list(rec, "per_step_mse_mean", where, None)
     if len(rec["per_step_mse_mean"]) < 2:
         raise ResultsError(f"{where}: 'per_step_mse_mean' must have one entry per frame (at least 2)")
     if rec["max_forecast_norm"] is not None:
-        _check_list(rec, "max_forecast_norm", where, batch)
+        check_list(rec, "max_forecast_norm", where, batch)
     elif rec["filter"] not in ("enkf", "none"):
         raise ResultsError(f"{where}: 'max_forecast_norm' may be null only for the EnKF (it uses no Jacobian) "
                            "and an estimator without a filter")
@@ -359,29 +336,9 @@ def validate_record(rec: Any, where: str = "record") -> None:
     if curves is not None:
         n_t = len(rec["per_step_mse_mean"])
         if (not isinstance(curves, list) or len(curves) != batch
-                or not all(isinstance(c, list) and len(c) == n_t and all(_is_number(v) for v in c) for c in curves)):
+                or not all(isinstance(c, list) and len(c) == n_t and all(is_number(v) for v in c) for c in curves)):
             raise ResultsError(f"{where}: 'per_trajectory_step_mse' must be {batch} lists of {n_t} numbers")
-    for name in ("trajectories", "params", "divergence_resets"):
-        if name in rec:
-            _check_list(rec, name, where, batch)
-    for score in UNCERTAINTY_SCORES:
-        final, steps = f"final_{score}_mean", f"per_step_{score}_mean"
-        if not _is_number(rec.get(final)):
-            raise ResultsError(f"{where}: {final!r} must be a number or null, got {rec[final]!r}")
-        if rec.get(steps) is not None:
-            _check_list(rec, steps, where, None)
-            if len(rec[steps]) != len(rec["per_step_mse_mean"]):
-                raise ResultsError(f"{where}: {steps!r} must have one entry per frame, like 'per_step_mse_mean'")
-    _check_relative(rec, where)
-    _check_intervals(rec, where)
-    for name in ("final_channel_mse_mean", "final_channel_nmse_mean", "final_channel_rel_l2_mean"):
-        value = rec.get(name)
-        if value is not None and (not isinstance(value, dict)
-                                  or not all(isinstance(k, str) and _is_number(v) for k, v in value.items())):
-            raise ResultsError(f"{where}: {name!r} must map channel names to numbers, got {value!r}")
-    for name in ("per_step_gain_norm_mean", "per_step_spread_mean"):
-        if rec.get(name) is not None:
-            _check_list(rec, name, where, len(rec["per_step_mse_mean"]) - 1, "the number of filter steps")
+    check_optional_fields(rec, where)
 
 
 def _validate_protocol(doc: dict[str, Any]) -> None:

@@ -26,6 +26,10 @@ Row = Mapping[str, Any]
 
 #: The scenario every experiment varies one thing of: the paper's defaults (r = 32, T = 1, 20 % noise).
 DEFAULT_SCENARIO = {"initial": "approximate", "noise": 0.2, "r": 32, "T": 1}
+#: Experiments whose runs differ from other experiments' runs of the same key (the calibrated filters' own Q
+#: and P0; timing's one trajectory; parameter's calibrated runs): :meth:`Records.find` looks into them only when
+#: asked by ``experiment=``.
+OWN_RUNS = ("calibrated", "timing", "parameter")
 
 
 class Records:
@@ -42,9 +46,12 @@ class Records:
         return select(self.doc, **criteria)
 
     def find(self, **criteria: Any) -> Record | None:
-        """The record matching ``criteria`` in any experiment (experiments repeat identical runs): of several,
-        the one with the most fields (a rerun's, whose newer fields an older copy lacks), else the first."""
+        """The record matching ``criteria`` in any experiment but those of :data:`OWN_RUNS` unless ``criteria``
+        name one (the others repeat identical runs): of several, the one with the most fields (a rerun's, whose
+        newer fields an older copy lacks), else the first."""
         found = self.select(**criteria)
+        if "experiment" not in criteria:
+            found = [r for r in found if r["experiment"] not in OWN_RUNS]
         return max(found, key=len) if found else None
 
     def base(self, **criteria: Any) -> Record | None:

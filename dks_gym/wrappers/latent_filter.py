@@ -16,8 +16,9 @@ with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env
 * with ``uncertainty=True`` (default) ``info["estimate_std"]``, the predictive std of every cell
   (``(C, *grid)``, physical units: the filter's latent covariance pushed through the decoder, plus the
   decoder's reconstruction variance: ``Uncertainty(reconstruction_var=...)``, else the model's calibrated
-  one), and its scores ``coverage`` (of the central 95 % interval), ``nees`` (mean per cell) and ``crps``
-  over the scored channels;
+  one), and its scores ``coverage`` (of the central 95 % interval), ``nees`` (mean per cell), ``crps`` and
+  ``spread_skill`` (sqrt(mean std^2 / MSE): 1 when calibrated, :mod:`~dks_gym.assimilation.spread`) over the
+  scored channels;
   wall time per DA step is in ``wrapper.filter.diagnostics`` (in info it would break determinism);
 * with ``FilterConfig(parameter="estimate")`` (mu estimated with the state; needed on an env made with
   ``parameter="hidden"``): ``mu_estimate``, ``mu_std``, the central 95 % interval ``mu_low``, ``mu_high``,
@@ -52,8 +53,8 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``filter``: "ekf", "enkf" or "forward" (default: ``config.kind``, "ekf"). ``config``: a
     :class:`~dks_gym.FilterConfig` with everything else (initial condition, P0, Q, ensemble size, inflation,
     localization, divergence policy, seed); R = sigma^2 I comes from the env.
-    ``uncertainty``: put ``estimate_std`` and its scores (``coverage``, ``nees``, ``crps``) in ``info``
-    (default True; it costs r decoder Jacobian-vector products per step, or one decode per EnKF member:
+    ``uncertainty``: put ``estimate_std`` and its scores (``coverage``, ``nees``, ``crps``, ``spread_skill``) in
+    ``info`` (default True; it costs r decoder Jacobian-vector products per step, or one decode per EnKF member:
     False for speed); :class:`~dks_gym.wrappers.Uncertainty` ``(reconstruction_var=...)`` switches it on with
     the decoder's reconstruction-error variance per cell ``(C, *grid)`` of your choice
     (:func:`~dks_gym.assimilation.reconstruction_variance`; default the model's calibrated one).
@@ -113,7 +114,7 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if snap.estimate_std is not None:
             self.estimate_std = snap.estimate_std[0].cpu().numpy().astype(np.float32)
             info.update(estimate_std=self.estimate_std, coverage=float(snap.coverage[0]), nees=float(snap.nees[0]),
-                        crps=float(snap.crps[0]))
+                        crps=float(snap.crps[0]), spread_skill=float(snap.spread_skill[0]))
         for name, values in (snap.parameter or {}).items():
             info[name] = bool(values[0]) if values.dtype == bool else float(values[0])
         return info

@@ -30,7 +30,7 @@ class LatentFilterVectorEnv(VectorEnv):
     ``reward`` and ``uncertainty`` are those of :class:`~dks_gym.wrappers.LatentFilter`; every other keyword
     goes to each :class:`~dks_gym.envs.SensingEnv` (``preset``, ``sensor_mode``, ``noise_level`` ...).
     ``uncertainty`` (default True) puts ``estimate_std`` (N, C, *grid) and the scores ``coverage``, ``nees``,
-    ``crps`` (N,) in the infos; ``uncertainty=False`` skips their cost (RL training).
+    ``crps``, ``spread_skill`` (N,) in the infos; ``uncertainty=False`` skips their cost (RL training).
     The infos hold the single env's keys batched: ``mse``, ``normalized_mse``, ``relative_l2``, ``score`` (N,),
     ``estimate`` (N, C, *grid) and ``relative_l2_channels`` ``{scored channel: (N,)}``.
     """
@@ -121,6 +121,7 @@ class LatentFilterVectorEnv(VectorEnv):
         if snap.estimate_std is not None:
             infos["estimate_std"] = snap.estimate_std.cpu().numpy().astype(np.float32)
             infos["coverage"], infos["nees"], infos["crps"] = snap.coverage, snap.nees, snap.crps
+            infos["spread_skill"] = snap.spread_skill
         infos.update(snap.parameter or {})
         return infos
 
