@@ -31,8 +31,8 @@ from .conformance import PROTOCOL_KEY, stamp_protocol
 from .experiment import EXPERIMENTS, Run, Section
 from .figures import MODEL_LABELS
 from .formatting import fixed, markdown_table, sci
-from . import parameter_experiment  # noqa: F401  (registers the `parameter` experiment after the paper's)
 from .paper_experiments import MODELS
+from . import parameter_experiment  # noqa: F401,E402  (registers `parameter` after the paper's experiments)
 from .results import (
     RESULTS_FILE,
     Record,
