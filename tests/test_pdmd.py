@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from dks_gym.models import PDMD, build_model, streamed_pod
-from dks_gym.models.pdmd import sign_reference
+from dks_gym.models.pod import sign_reference
 from tests.references.make_references import assert_same_input, load_references
 
 UNREGULARIZED = {"dmd_tikhonov": 0.0, "rbf_smoothing": 0.0}  # PyDMD and ezyrb exactly as the paper calls them

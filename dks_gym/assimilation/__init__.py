@@ -33,6 +33,7 @@ from .episodes import (
     run_episodes,
 )
 from .errors import ctf_score, field_errors, relative_l2_errors
+from .parameter_scores import parameter_summary
 from .resolve import ModelLike, resolve_model
 from .tuning import calibrate_process_noise, held_out_coverage, tune_if_missing, tune_process_noise
 from .uncertainty import (
@@ -44,6 +45,7 @@ from .uncertainty import (
 )
 
 __all__ = [
+    "parameter_summary",
     "DIVERGENCE_POLICIES",
     "FILTERS",
     "INITIAL_CONDITIONS",

@@ -22,6 +22,7 @@ from ..envs.faults import SensorFaults
 from ..filters import EKF, EnKF, LatentDynamics, augment_with_bias, augmented_covariance
 from ..filters.covariance import as_covariance, check_covariance_spec
 from ..filters.enkf import Localization
+from ..filters.parameter import ParameterCoordinate
 from ..models import FilterableModel
 from ..names import FILTERS
 
@@ -29,6 +30,9 @@ INITIAL_CONDITIONS = ("approximate", "exact")
 DIVERGENCE_POLICIES = ("raise", "reset")
 #: Named choices of Q and P0: the paper's (1e-4 I, 1.0 I), or measured on the model's own errors (calibrated).
 CALIBRATION_CHOICES = ("paper", "calibrated")
+#: How the filter treats the physical parameter mu: told the env's (``known``), estimates it with the state, or
+#: assumes the prior's mean (``prior``: what a filter without the parameter's value would do).
+PARAMETER_CHOICES = ("known", "estimate", "prior")
 PAPER_Q, PAPER_P0 = 1e-4, 1.0
 
 
@@ -54,6 +58,13 @@ class FilterConfig:
     docs/filters.md): the standard deviation of the bias random walk's step per frame, in the observed
     channel's units (0: a constant unknown bias); None (default): no bias. ``bias_prior``: the initial bias's
     standard deviation (default: the env's noise sigma). The bias belongs to a sensor slot of the layout.
+    ``parameter``: "known" (default: the env's true mu), "estimate" (mu joins the state,
+    :mod:`dks_gym.filters.parameter`, docs/filters.md), "prior" (mu assumed at the prior's mean) or a number
+    (mu assumed to be that value). ``parameter_prior``: with "estimate" or "prior", the prior ``(mean, std)``
+    of mu in its physical units (default: the mean and std of a uniform over the training range, in the
+    estimated coordinate); ``parameter_drift``: the std of the estimated
+    coordinate's random-walk step per frame (log mu where the training range spans a decade: a relative
+    change), None or 0 for a constant parameter.
     """
 
     kind: str = "ekf"
@@ -67,6 +78,9 @@ class FilterConfig:
     seed: int = 0
     bias_drift: float | None = None
     bias_prior: float | None = None
+    parameter: str | float = "known"
+    parameter_prior: tuple[float, float] | None = None
+    parameter_drift: float | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in FILTERS:
@@ -109,6 +123,53 @@ class FilterConfig:
         if self.bias_prior is not None and self.bias_drift is None:
             raise ValueError("bias_prior is the initial bias of the estimated sensor biases: set bias_drift too "
                              "(0.0 for a constant bias)")
+        self._check_parameter()
+
+    def _check_parameter(self) -> None:
+        p = self.parameter
+        if isinstance(p, str):
+            if p not in PARAMETER_CHOICES:
+                raise ValueError(f"parameter must be 'known', 'estimate' or a number (an assumed mu), got {p!r}")
+        elif isinstance(p, bool) or not isinstance(p, numbers.Real) or not np.isfinite(p):
+            raise ValueError(f"parameter must be 'known', 'estimate' or a finite number (an assumed mu), got {p!r}")
+        estimating = p == "estimate"
+        if self.parameter_prior is not None:
+            if p not in ("estimate", "prior"):
+                raise ValueError("parameter_prior is the prior of an estimated mu: set parameter='estimate' (or "
+                                 "'prior', its mean assumed) too")
+            prior = self.parameter_prior
+            if not (isinstance(prior, (tuple, list)) and len(prior) == 2 and all(
+                    isinstance(v, numbers.Real) and not isinstance(v, bool) and np.isfinite(v) for v in prior)):
+                raise ValueError(f"parameter_prior must be (mean, std), two finite numbers in mu's units, "
+                                 f"got {prior!r}")
+            if prior[1] <= 0:
+                raise ValueError(f"parameter_prior's std must be > 0 (a Gaussian prior of mu), got {prior[1]!r}")
+            object.__setattr__(self, "parameter_prior", (float(prior[0]), float(prior[1])))
+        drift = self.parameter_drift
+        if drift is not None:
+            if not estimating:
+                raise ValueError("parameter_drift is the random walk of an estimated mu: set parameter='estimate'")
+            if isinstance(drift, bool) or not isinstance(drift, numbers.Real) or not np.isfinite(drift) or drift < 0:
+                raise ValueError(f"parameter_drift must be a finite standard deviation >= 0 per frame or None, "
+                                 f"got {drift!r}")
+
+    @property
+    def estimates_parameter(self) -> bool:
+        """Whether mu is part of the filter's state."""
+        return self.parameter == "estimate"
+
+    def parameter_state(self, low: float, high: float) -> tuple[ParameterCoordinate, float, float]:
+        """For an estimated mu with the training range ``[low, high]``: its coordinate and the prior (mean, std)
+        of that coordinate; a ValueError when a given prior's mean lies outside the range or is not positive
+        where mu is estimated in log."""
+        coordinate = ParameterCoordinate.for_range(low, high)
+        if self.parameter_prior is None:
+            return (coordinate, *coordinate.prior())
+        mean, std = self.parameter_prior
+        if not low <= mean <= high:
+            raise ValueError(f"parameter_prior's mean {mean:g} lies outside the training range [{low:g}, {high:g}] "
+                             "of the parameter: the model was not trained there; give a mean inside it")
+        return (coordinate, *coordinate.prior(mean, std))
 
     @property
     def assimilates(self) -> bool:
@@ -135,21 +196,34 @@ class FilterConfig:
     def make(self, dynamics: LatentDynamics, sigma: torch.Tensor, seed: int,
              model: FilterableModel | None = None, n_sensors: int | None = None) -> EKF | EnKF:
         """The filter object (the forward run is the EKF loop stepped with the update off); ``model``
-        resolves ``Q="calibrated"``. With ``bias_drift`` the state is ``[z; b]`` over ``n_sensors`` biases."""
+        resolves ``Q="calibrated"``. With ``bias_drift`` the state is ``[z; b]`` over ``n_sensors`` biases; with an
+        estimated parameter ``dynamics`` are those of ``[z; s]`` and the state ``[z; s; b]``."""
         Q = self.process_noise(model)  # the filters convert it to the state's dtype and device
+        r = model.r
+        if self.estimates_parameter:  # the dynamics come augmented with [z; s] (core), Q gets the s block
+            Q = augmented_covariance(Q, r, 1, float(self.parameter_drift or 0.0) ** 2)
+            r += 1
         if self.bias_drift is not None:
             dynamics = augment_with_bias(dynamics, n_sensors)
-            Q = augmented_covariance(Q, model.r, n_sensors, float(self.bias_drift) ** 2)
+            Q = augmented_covariance(Q, r, n_sensors, float(self.bias_drift) ** 2)
         if self.kind == "enkf":
             return EnKF(dynamics, sigma=sigma, Q=Q, n_members=self.n_members, inflation=self.inflation,
                         localization=self.localization, generator=seed, on_divergence=self.on_divergence)
         return EKF(dynamics, sigma=sigma, Q=Q, on_divergence=self.on_divergence)
 
     def initial_state(self, model: FilterableModel, z0: torch.Tensor, sigma: torch.Tensor,
-                      n_sensors: int) -> tuple[torch.Tensor, torch.Tensor | float]:
-        """The filter's start ``(mean, P0)``: ``z0`` and :meth:`initial_covariance`, augmented with zero biases
-        of variance ``bias_prior**2`` (default ``sigma**2`` per element) when ``bias_drift`` is set."""
+                      n_sensors: int, parameter_prior: tuple[float, float] | None = None,
+                      ) -> tuple[torch.Tensor, torch.Tensor | float]:
+        """The filter's start ``(mean, P0)``: ``z0`` and :meth:`initial_covariance`, augmented with the estimated
+        parameter's prior (mean, std) of its coordinate when given, and with zero biases of variance
+        ``bias_prior**2`` (default ``sigma**2`` per element) when ``bias_drift`` is set."""
         P0 = self.initial_covariance(model)
+        if parameter_prior is not None:
+            batch, r = z0.shape
+            P = torch.zeros(batch, r + 1, r + 1, dtype=z0.dtype, device=z0.device)
+            P[:, :r, :r] = as_covariance(P0, batch, r, like=z0, name="P0")
+            P[:, r, r] = parameter_prior[1] ** 2
+            z0, P0 = torch.cat([z0, z0.new_full((batch, 1), parameter_prior[0])], dim=1), P
         if self.bias_drift is None:
             return z0, P0
         batch, r = z0.shape
@@ -247,7 +321,14 @@ class AssimilationConfig:
                 "n_sensors": self.n_sensors, "P0": _plain(f.P0), "Q": _plain(f.Q), "noise_seed": self.noise_seed,
                 "filter_seed": f.seed, "split": self.split, "on_divergence": f.on_divergence,
                 "bias_drift": f.bias_drift, "bias_prior": f.bias_prior,
-                "faults": None if self.faults is None else dataclasses.asdict(self.faults)}
+                "faults": None if self.faults is None else dataclasses.asdict(self.faults),
+                # a known mu, the default, adds nothing (files made before the option read the same)
+                **({} if f.parameter == "known" else {"parameter": f.parameter, "parameter_drift": f.parameter_drift,
+                                                      "parameter_prior": _plain_prior(f.parameter_prior)})}
+
+
+def _plain_prior(prior: tuple[float, float] | None) -> list[float] | None:
+    return None if prior is None else list(prior)
 
 
 def _plain(value: float | torch.Tensor) -> Any:

@@ -23,6 +23,7 @@ import torch
 from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
 from ..filters import EKF, EnKF, LatentDynamics, bind_param
+from ..filters.parameter import ParameterCoordinate, augment_with_parameter
 from ..models import FilterableModel, model_device, model_dtype
 from ..threads import torch_threads
 from .config import FilterConfig
@@ -70,6 +71,11 @@ class Snapshot:
     coverage: np.ndarray | None = None
     nees: np.ndarray | None = None
     crps: np.ndarray | None = None
+    # With an estimated parameter (else None), per element: mu's estimate, its std (delta method in the
+    # estimated coordinate), the central 95 % interval, whether the estimate leaves the training range (the
+    # model extrapolates there: flagged, not hidden), its relative error |mu^ - mu| / mu, whether the true
+    # mu lies in the interval, and the estimated coordinate's std over its prior's (near 1: not identified).
+    parameter: dict[str, np.ndarray] | None = None
     predicted_mse: np.ndarray | None = None
     # EnKF with uncertainty, after a step (else None): the rank of the truth among the n decoded members
     # (0..n, :func:`~dks_gym.assimilation.spread.truth_ranks`) at the sensors read (B, m) and at the fixed
@@ -130,6 +136,9 @@ class Assimilation:
         self._now: EKF | EnKF | None = None  # the filter as of the current frame (its lead when readings are late)
         self._lag = self._k = 0
         self._mu: torch.Tensor | None = None
+        self._true_mu: np.ndarray | None = None
+        self._coordinate: ParameterCoordinate | None = None  # set while mu is estimated
+        self._prior_std = 1.0  # the estimated coordinate's prior std
         self._ranked: tuple[int, np.ndarray, np.random.Generator] | None = None  # EnKF: offset, cells, tie-breaks
 
     @property
@@ -138,7 +147,8 @@ class Assimilation:
         return self._filter
 
     def _dynamics(self, channel: str) -> LatentDynamics:
-        """The model as the filters see it: mu bound, h(z) = S(decode(z)) at each element's current sensors."""
+        """The model as the filters see it: mu bound (or estimated with the state, ``[z; s]``), h(z) =
+        S(decode(z)) at each element's current sensors."""
         model, mu, rows = self.model, self._mu, self._sensors
         c = model.shape.channels.index(channel)
 
@@ -146,9 +156,37 @@ class Assimilation:
             fields = model.decode(z, m).flatten(2)[:, c]
             return fields.gather(1, torch.as_tensor(rows(z.shape[0]), device=fields.device))
 
+        if self._coordinate is not None:
+            return augment_with_parameter(model.forecast, observe, self._coordinate)
         return LatentDynamics(bind_param(model.forecast, mu), bind_param(observe, mu),
                               forecast_jacobian=model.filter_forecast_jacobian(mu),
                               observe_jacobian=model.filter_observe_jacobian(mu, rows, channel))
+
+    def _parameter_start(self, envs: Sequence[SensingEnv]) -> tuple[float, float] | None:
+        """Set the mu the model is run with (and the coordinate of an estimated one); return the estimated
+        coordinate's prior (mean, std), None when mu is not estimated."""
+        choice = self.config.parameter
+        self._true_mu = np.array([e.mu for e in envs], dtype=np.float64)  # for scoring only
+        self._coordinate, prior = None, None
+        if choice == "known":
+            hidden = [i for i, e in enumerate(envs) if getattr(e, "parameter", "known") == "hidden"]
+            if hidden:
+                raise ValueError(f"the env{'s' if len(envs) > 1 else ''} hide{'' if len(envs) > 1 else 's'} mu "
+                                 "(parameter='hidden'), so the filter cannot be told it: estimate it with "
+                                 "FilterConfig(parameter='estimate') or assume a value with "
+                                 "FilterConfig(parameter=VALUE)")
+            values = self._true_mu
+        elif choice in ("estimate", "prior"):
+            train = envs[0].dataset.params("train")
+            coordinate, mean, std = self.config.parameter_state(float(np.min(train)), float(np.max(train)))
+            values = np.full(len(envs), float(coordinate.to_param(torch.tensor(mean, dtype=torch.float64))))
+            if choice == "estimate":
+                self._coordinate, prior = coordinate, (mean, std)
+                self._prior_std = std
+        else:
+            values = np.full(len(envs), float(choice))
+        self._mu = torch.as_tensor(values, dtype=self.dtype, device=self.device)
+        return prior
 
     @torch_threads("assimilate")
     def start(self, envs: Sequence[SensingEnv], seed: int, sensors: np.ndarray | None = None) -> Snapshot:
@@ -156,7 +194,7 @@ class Assimilation:
 
         ``sensors`` (B, m): the layouts the filter reads, when they are not the envs' own.
         """
-        self._mu = torch.tensor([e.mu for e in envs], dtype=self.dtype, device=self.device)
+        prior = self._parameter_start(envs)
         self._sensors.current = np.stack([e.sensors for e in envs]) if sensors is None else np.asarray(sensors)
         # A noise-free env (noise_level=0) still needs a positive R for the gain to exist.
         sigma = torch.tensor([max(e.sigma, 1e-12) for e in envs], dtype=self.dtype, device=self.device)
@@ -169,7 +207,7 @@ class Assimilation:
         else:
             z0 = approximate_initial_latent(self.model, envs[0].dataset).expand(len(envs), -1)
         self._filter.reset(*self.config.initial_state(self.model, z0.to(self.device, self.dtype).clone(), sigma,
-                                                      n_sensors))
+                                                      n_sensors, prior))
         self._lag, self._k, self._now = _latency(envs), 0, self._filter
         self._ranked = None
         if self.uncertainty and isinstance(self._filter, EnKF):
@@ -199,6 +237,8 @@ class Assimilation:
             present = torch.isfinite(y)
             self._filter.step(y, assimilate=self.config.assimilates, mask=None if bool(present.all()) else present)
         self._now = self._filter.lead(min(self._k, self._lag)) if self._lag else self._filter
+        if self._coordinate is not None:  # decode with the current estimate of mu
+            self._mu = self._coordinate.to_param(self._now.mean[:, self.model.r].detach())
         return self._snapshot(envs, with_diagnostics=True, stepped=stepped)
 
     def _truth(self, envs: Sequence[SensingEnv]) -> torch.Tensor:
@@ -229,6 +269,8 @@ class Assimilation:
                 ranks = truth_ranks(members.cpu().double().numpy(), at.cpu().double().numpy(), self._ranked[2])
                 m = self._sensors.current.shape[1]
                 snap.sensor_ranks, snap.cell_ranks = ranks[:, :m], ranks[:, m:]
+        if self._coordinate is not None:
+            snap.parameter = self.parameter_scores()
         if with_diagnostics and stepped:
             d = self._filter.diagnostics
             snap.diagnostics = {"gain_norm": d.gain_norm[-1].cpu().numpy(), "spread": d.spread[-1].cpu().numpy()}
@@ -284,6 +326,21 @@ class Assimilation:
                 var = var + self.reconstruction_var.to(var)
             return var.clamp_min(0.0).sqrt(), members
 
+    def parameter_scores(self) -> dict[str, np.ndarray]:
+        """The estimated mu per element and how it fares (see :attr:`Snapshot.parameter`)."""
+        r, coordinate = self.model.r, self._coordinate
+        s = self._now.mean[:, r].detach().double()
+        s_std = self._now.cov[:, r, r].detach().double().clamp_min(0.0).sqrt()
+        mu = coordinate.to_param(s)
+        low, high = coordinate.interval(s, s_std)
+        truth = torch.as_tensor(self._true_mu, dtype=torch.float64, device=s.device)
+        return {"mu_estimate": mu.cpu().numpy(), "mu_std": (mu * s_std if coordinate.log else s_std).cpu().numpy(),
+                "mu_low": low.cpu().numpy(), "mu_high": high.cpu().numpy(),
+                "mu_out_of_range": coordinate.outside(s).cpu().numpy(),
+                "mu_relative_error": ((mu - truth).abs() / truth.abs()).cpu().numpy(),
+                "mu_in_interval": ((low <= truth) & (truth <= high)).cpu().numpy(),
+                "mu_std_ratio": (s_std / self._prior_std).cpu().numpy()}
+
     def truth(self, envs: Sequence[SensingEnv]) -> np.ndarray:
         """The envs' true fields (B, C, *grid) as the core scores them, float32."""
         return self._truth(envs).cpu().numpy().astype(np.float32)
@@ -302,7 +359,7 @@ class Assimilation:
         """The estimated sensor biases (B, m) with ``FilterConfig(bias_drift=...)``, else None."""
         if self.config.bias_drift is None or self._now is None:
             return None
-        return self._now.mean[:, self.model.r:].detach().cpu().numpy()
+        return self._now.mean[:, self.model.r + (self._coordinate is not None):].detach().cpu().numpy()
 
     def history(self) -> dict[str, np.ndarray | None]:
         """Over the steps so far: ``forecast_norm`` (n, B) (None for the EnKF), ``step_seconds`` (n,), and

@@ -88,6 +88,10 @@ class AssimilationResult:
     # step_mse; NaN where the truth is 0), (B, n_t), and per scored channel at the final frame, (B, n_scored).
     step_rel_l2: np.ndarray | None = None
     final_channel_rel_l2: np.ndarray | None = None
+    # With an estimated parameter (FilterConfig(parameter="estimate"), else None): per frame (B, n_t) the
+    # scores of :attr:`~dks_gym.assimilation.Snapshot.parameter` (mu_estimate, mu_std, mu_low, mu_high,
+    # mu_out_of_range, mu_relative_error, mu_in_interval).
+    step_parameter: dict[str, np.ndarray] | None = None
 
     @property
     def final_mse(self) -> np.ndarray:
@@ -297,6 +301,10 @@ def run_episodes(
     ranks: dict[str, list[np.ndarray]] = {"sensor_ranks": [], "cell_ranks": []}
     for name, values in scores.items():
         values[:, 0] = getattr(snap, name)
+    parameter = None if snap.parameter is None else {
+        name: np.empty((batch, n_t), dtype=value.dtype) for name, value in snap.parameter.items()}
+    for name, values in (parameter or {}).items():
+        values[:, 0] = snap.parameter[name]
     source.start(n_t)
     bar = tqdm(range(1, n_t), desc=description or f"{model.kind} {config.filter.kind}", unit="step", leave=False,
                disable=not progress, dynamic_ncols=True)
@@ -305,6 +313,8 @@ def run_episodes(
         step_mse[:, k], step_rel_l2[:, k] = snap.mse, snap.relative_l2
         for name, values in scores.items():
             values[:, k] = getattr(snap, name)
+        for name, values in (parameter or {}).items():
+            values[:, k] = snap.parameter[name]
         for name, seen in ranks.items():
             if getattr(snap, name) is not None:
                 seen.append(getattr(snap, name))
@@ -315,8 +325,10 @@ def run_episodes(
         histograms = {"rank_histogram_sensors": rank_histogram(np.stack(ranks["sensor_ranks"]), n),
                       "rank_histogram_cells": rank_histogram(np.stack(ranks["cell_ranks"]), n),
                       "rank_cells": core.rank_cells}
-    return _result(model, config, envs, core, snap, (step_mse, step_rel_l2), scores, histograms, source.extras(),
-                   start)
+    result = _result(model, config, envs, core, snap, (step_mse, step_rel_l2), scores, histograms,
+                     source.extras(), start)
+    result.step_parameter = parameter
+    return result
 
 
 def _result(model: FilterableModel, config: AssimilationConfig, envs: Sequence[SensingEnv], core: Assimilation,

@@ -18,6 +18,10 @@ bias drift, saturation, quantization, latency and slow sensors, seeded like the 
 NaN in the observation (which a Box cannot contain: the filter wrappers observe the belief instead) and
 ``info["mask"]`` (True = present, always given) says which. Latency reads the current layout's cells.
 
+``parameter="hidden"`` leaves the trajectory's physical parameter mu out of ``info`` (default "known": in
+``info["mu"]``), so that an agent or a filter must estimate it; the env keeps it (``env.unwrapped.mu``) to
+score estimates.
+
 An episode ends with ``truncated=True`` when the last frame is reached: the flow goes on, the record stops.
 """
 
@@ -36,8 +40,36 @@ from .faults import FaultRealization, SensorFaults
 from .noise import measurement_noise, noise_sigma
 
 SENSOR_MODES = ("fixed", "select")
+#: Whether info carries the episode's mu ("known") or not ("hidden").
+PARAMETER_MODES = ("known", "hidden")
 _RESET_OPTIONS = {"trajectory", "sensors", "noise_seed"}
 _WHOLE_TRAJECTORY_BYTES = 64 << 20  # smaller trajectories are read once per episode, larger ones frame by frame
+
+
+def _check_settings(split: str, sensor_mode: str, noise_level: Any, render_mode: str | None, parameter: str,
+                    render_modes: list[str]) -> None:
+    """The env's plain settings, each refused with what to use instead."""
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; choose 'train' or 'test'")
+    if sensor_mode not in SENSOR_MODES:
+        raise ValueError(f"unknown sensor_mode {sensor_mode!r}; choose 'fixed' or 'select'")
+    if not (isinstance(noise_level, numbers.Real) and not isinstance(noise_level, bool)
+            and np.isfinite(noise_level) and noise_level >= 0):
+        raise ValueError(f"noise_level must be a finite number >= 0, got {noise_level!r}")
+    if render_mode is not None and render_mode not in render_modes:
+        raise ValueError(f"unsupported render_mode {render_mode!r}; choose 'rgb_array' or None")
+    if parameter not in PARAMETER_MODES:
+        raise ValueError(f"parameter must be 'known' (mu in info) or 'hidden' (mu kept for scoring only), "
+                         f"got {parameter!r}")
+
+
+def _check_latency(faults: SensorFaults | None, n_frames: int) -> None:
+    """Refuse a latency after which no reading reaches a filter before the episode ends."""
+    if faults is not None and faults.latency >= n_frames - 1:
+        raise ValueError(
+            f"faults latency {faults.latency} leaves every episode of {n_frames} frames without a reading to "
+            f"assimilate: the readings of frame k arrive at frame k + latency, and the first one a filter uses "
+            f"(frame 1's) would come after the last frame ({n_frames - 1}); use a latency of at most {n_frames - 2}")
 
 
 class SensingEnv(gym.Env):
@@ -60,19 +92,14 @@ class SensingEnv(gym.Env):
         faults: SensorFaults | dict[str, Any] | None = None,
         render_mode: str | None = None,
         render_channel: str | None = None,
+        parameter: str = "known",
     ) -> None:
         self.benchmark = get_benchmark(benchmark)
-        if split not in SPLITS:
-            raise ValueError(f"unknown split {split!r}; choose 'train' or 'test'")
-        if sensor_mode not in SENSOR_MODES:
-            raise ValueError(f"unknown sensor_mode {sensor_mode!r}; choose 'fixed' or 'select'")
-        if not (isinstance(noise_level, numbers.Real) and not isinstance(noise_level, bool)
-                and np.isfinite(noise_level) and noise_level >= 0):
-            raise ValueError(f"noise_level must be a finite number >= 0, got {noise_level!r}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"unsupported render_mode {render_mode!r}; choose 'rgb_array' or None")
+        _check_settings(split, sensor_mode, noise_level, render_mode, parameter, self.metadata["render_modes"])
+        self.parameter = parameter
         self.faults = SensorFaults.from_any(faults)
         self.dataset: Dataset = load_dataset(self.benchmark.name, preset, data_path)
+        _check_latency(self.faults, self.dataset.n_frames)
         self.split = split
         self.sensor_mode = sensor_mode
         self.noise_level = float(noise_level)
@@ -280,7 +307,7 @@ class SensingEnv(gym.Env):
         return obs
 
     def _info(self) -> dict[str, Any]:
-        return {
+        info = {
             "mu": self.mu,
             "param_name": self.benchmark.param_name,
             "time_index": self._k,
@@ -294,6 +321,9 @@ class SensingEnv(gym.Env):
             "sigma": self.sigma,
             "noise_seed": self._noise_seed,
         }
+        if self.parameter == "hidden":  # an agent must not read it; the env keeps it for scoring
+            del info["mu"]
+        return info
 
     # Rendering -------------------------------------------------------------------------------------
     def render(self) -> np.ndarray | None:

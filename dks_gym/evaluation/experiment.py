@@ -31,6 +31,7 @@ class Run:
     n_members: int = 20
     single: bool = False  # one trajectory (B = 1) instead of the whole test split: the timing experiment
     calibrated: bool = False  # Q and P0 measured on the model's own errors instead of the paper's 1e-4 I and I
+    parameter: str = "known"  # the filter told mu, estimating it ("estimate") or assuming the prior's mean
 
     @property
     def model_key(self) -> tuple[str, int, int]:
@@ -41,12 +42,13 @@ class Run:
     def cache_key(self) -> tuple:
         """What makes two runs the same computation (experiments repeat identical runs: computed once)."""
         n = self.n_members if self.filter == "enkf" else None
-        return (self.model, self.filter, self.initial, self.noise, self.r, self.T, n, self.single, self.calibrated)
+        return (self.model, self.filter, self.initial, self.noise, self.r, self.T, n, self.single, self.calibrated,
+                self.parameter)
 
     def record_key(self, experiment: str) -> tuple:
         """The results-file identity (:func:`~dks_gym.evaluation.results.record_key`) of the run in ``experiment``."""
         n = self.n_members if self.filter == "enkf" else None
-        return (experiment, self.model, self.filter, self.initial, self.noise, self.r, self.T, n)
+        return (experiment, self.model, self.filter, self.initial, self.noise, self.r, self.T, n, self.parameter)
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from .experiment import EXPERIMENTS, Run, Section
 from .figures import MODEL_LABELS
 from .formatting import fixed, markdown_table, sci
 from .paper_experiments import MODELS
+from . import parameter_experiment  # noqa: F401,E402  (registers `parameter` after the paper's experiments)
 from .results import (
     RESULTS_FILE,
     Record,
@@ -221,7 +222,7 @@ class Reproduction:
             return
         if run.cache_key not in self.results:
             config = self.base.replace(kind=run.filter, initial=run.initial, noise_level=run.noise,
-                                       n_members=run.n_members)
+                                       n_members=run.n_members, parameter=run.parameter)
             if run.calibrated:
                 config = config.replace(Q="calibrated", P0="calibrated")
             # The predictive std (r decoder JVPs per step) is scored where it is reported: the calibrated

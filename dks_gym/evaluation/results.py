@@ -14,7 +14,7 @@ One file holds the runs of one benchmark with one model preset::
       "records": [RECORD, ...]
     }
 
-A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run over the test split::
+A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members, parameter) run over the test split::
 
     experiment  str     "main", "enkf", "ensemble", "noise", "latent", "multistep", "operator_norm", "timing"
     model       str     "koopman", "pdmd", "mlp", "xlstm"; or an estimator's name (filter "none"): "shred", a user's
@@ -52,6 +52,10 @@ A RECORD is one (experiment, model, filter, initial, noise, r, T, n_members) run
                                     trajectories (the Common Task Framework's score; negative beyond 1)
     final_channel_rel_l2_mean       {channel: float}   (optional) the relative L2 error of each scored channel at
                                     the final frame, mean over trajectories
+    parameter                       str            (optional, part of the key; absent: "known") how the filter
+                                    treated mu: "estimate" (with the state), "prior" (the prior's mean assumed)
+    parameter_scores                {...}          (optional) an estimated mu's scores: relative error, 95 %
+                                    interval coverage, out-of-range fraction (assimilation.parameter_summary)
     final_mse_iqm, final_mse_ci95   float | null, [low, high] | null   (optional) the interquartile mean and the
                                     95 % percentile bootstrap interval of the mean of ``per_trajectory_final_mse``,
                                     resampled within trajectories when they repeat (noise seeds); the same for
@@ -84,7 +88,7 @@ from typing import Any, TypedDict
 
 import numpy as np
 
-from ..assimilation import ctf_score
+from ..assimilation import ctf_score, parameter_summary
 from ..atomic import atomic_path
 from ..names import FILTERS, MODEL_KINDS
 from .intervals import interval_fields
@@ -94,11 +98,14 @@ SCHEMA = "dks-gym-results"
 SCHEMA_VERSION = 1
 #: The name every writer gives its results file (gzip-compressed JSON: a tenth of the plain size).
 RESULTS_FILE = "results.json.gz"
-RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_members")
+RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_members", "parameter")
+#: A key field a record may leave out, and its value then (files made before it read the same).
+KEY_DEFAULTS = {"parameter": "known"}
 RECORD_FILTERS = FILTERS + ("none",)  # "none": an estimator's record (no filter)
 INITIALS = ("approximate", "exact")
+PARAMETERS = ("known", "estimate", "prior", "assumed")  # "assumed": a value given by the caller
 _REQUIRED_TOP = ("schema", "schema_version", "benchmark", "preset", "dataset", "config", "records")
-_REQUIRED_RECORD = RECORD_KEY + (
+_REQUIRED_RECORD = RECORD_KEY[:-1] + (
     "batch", "final_mse_mean", "final_mse_std", "per_step_mse_mean", "per_trajectory_final_mse",
     "max_forecast_norm", "da_step_seconds", "wall_time",
 )
@@ -230,6 +237,10 @@ def make_record(result: Any, *, experiment: str, T: int = 1, keep_curves: bool =
             record[name] = [int(c) for c in getattr(result, name)]
     if getattr(result, "step_rel_l2", None) is not None:
         record.update(relative_fields(result.step_rel_l2, result.final_channel_rel_l2, result.channels))
+    if cfg.filter.parameter != "known":  # absent: the filter was told the true mu
+        record["parameter"] = cfg.filter.parameter if isinstance(cfg.filter.parameter, str) else "assumed"
+    if getattr(result, "step_parameter", None) is not None:
+        record["parameter_scores"] = parameter_summary(result.step_parameter)
     record.update(interval_fields(record))
     if keep_curves:
         record["per_trajectory_step_mse"] = _numbers(result.step_mse)
@@ -273,8 +284,8 @@ def new_results(benchmark: str, preset: str, dataset: dict[str, Any], config: di
 
 
 def record_key(record: dict[str, Any]) -> tuple:
-    """The identity of a run: (experiment, model, filter, initial, noise, r, T, n_members)."""
-    return tuple(record[k] for k in RECORD_KEY)
+    """The identity of a run: (experiment, model, filter, initial, noise, r, T, n_members, parameter)."""
+    return tuple(record.get(k, KEY_DEFAULTS.get(k)) if k in KEY_DEFAULTS else record[k] for k in RECORD_KEY)
 
 
 def run_key(record: dict[str, Any]) -> tuple:
@@ -292,8 +303,8 @@ def validate_record(rec: Any, where: str = "record") -> None:
         raise ResultsError(f"{where} lacks {', '.join(missing)}")
     if not isinstance(rec["experiment"], str) or not rec["experiment"]:
         raise ResultsError(f"{where}: 'experiment' must be a non-empty string")
-    for name, allowed in (("filter", RECORD_FILTERS), ("initial", INITIALS)):
-        if rec[name] not in allowed:
+    for name, allowed in (("filter", RECORD_FILTERS), ("initial", INITIALS), ("parameter", PARAMETERS)):
+        if rec.get(name, KEY_DEFAULTS.get(name)) not in allowed:
             raise ResultsError(f"{where}: {name!r} is {rec[name]!r}; expected one of {', '.join(allowed)}")
     if rec["model"] not in MODEL_KINDS and (rec["filter"] != "none" or not str(rec["model"] or "").strip()):
         raise ResultsError(f"{where}: 'model' {rec['model']!r} is none of {MODEL_KINDS} (any name: filter 'none')")
@@ -415,8 +426,11 @@ def load_results(path: str | Path) -> ResultsDocument:
 
 
 def select(doc: ResultsDocument, **criteria: Any) -> list[Record]:
-    """The records whose fields equal ``criteria`` (e.g. ``experiment="main", filter="ekf"``)."""
-    return [r for r in doc["records"] if all(r.get(k) == v for k, v in criteria.items())]
+    """The records whose fields equal ``criteria`` (e.g. ``experiment="main", filter="ekf"``); a key field a
+    record leaves out has its default (:data:`KEY_DEFAULTS`), also as a criterion: a run with an estimated
+    parameter is found only when ``parameter="estimate"`` is asked for."""
+    criteria = {**KEY_DEFAULTS, **criteria}
+    return [r for r in doc["records"] if all(r.get(k, KEY_DEFAULTS.get(k)) == v for k, v in criteria.items())]
 
 
 def merge(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:

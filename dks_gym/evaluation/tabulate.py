@@ -27,8 +27,9 @@ Row = Mapping[str, Any]
 #: The scenario every experiment varies one thing of: the paper's defaults (r = 32, T = 1, 20 % noise).
 DEFAULT_SCENARIO = {"initial": "approximate", "noise": 0.2, "r": 32, "T": 1}
 #: Experiments whose runs differ from other experiments' runs of the same key (the calibrated filters' own Q
-#: and P0; timing's one trajectory): :meth:`Records.find` looks into them only when asked by ``experiment=``.
-OWN_RUNS = ("calibrated", "timing")
+#: and P0; timing's one trajectory; parameter's calibrated runs): :meth:`Records.find` looks into them only when
+#: asked by ``experiment=``.
+OWN_RUNS = ("calibrated", "timing", "parameter")
 
 
 class Records:

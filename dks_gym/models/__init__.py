@@ -26,7 +26,8 @@ from .koopman import KoopmanOperator, dissipative_generator
 from .build import NEURAL_MAPS, build_model
 from .latent_model import KoopmanModel, LatentModel, NeuralLatentModel, count_parameters, model_device, model_dtype
 from .mlp import MLPTransition
-from .pdmd import PDMD, streamed_pod
+from .pdmd import PDMD
+from .pod import streamed_pod
 from .protocol import FILTERABLE_MEMBERS, FilterableModel, missing_members
 from .presets import (
     BENCHMARK_SHAPES,

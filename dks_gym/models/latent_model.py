@@ -400,6 +400,8 @@ class KoopmanModel(NeuralLatentModel):
         """K(mu; dt) (B, r, r) (Eq. 7); cached per mu when no gradient is being recorded."""
         mu = torch.as_tensor(mu, device=self.stats_mean.device)
         mu = self._param(mu, mu.shape[0] if mu.ndim else 1)
+        if mu.requires_grad:  # differentiated in mu (a filter estimating it): every row, no cache
+            return self.latent_map.operator(self.encoder.embedding(mu))
         if torch.is_grad_enabled() and any(p.requires_grad for p in self._operator_parameters()):
             return self._compute_operator(mu)
         # In-place updates (optimizer steps, load_state_dict) bump the parameter versions.

@@ -39,8 +39,8 @@ continuously with the data instead of jumping with the rounding:
   relative cutoff.
 
 The four settings are the model's state: they round-trip through ``state_dict`` (as its extra state) and
-are mirrored in the checkpoint metadata. The POD basis vectors get a fixed sign (see :func:`streamed_pod`),
-since LAPACK's choice of sign depends on the thread count and the CPU.
+are mirrored in the checkpoint metadata. The POD basis vectors get a fixed sign (see
+:func:`~dks_gym.models.pod.streamed_pod`), since LAPACK's choice of sign depends on the thread count and the CPU.
 
 As a latent model: encode(x) = U_r^T normalize(x), decode(z) = denormalize(U_r z), both independent of
 mu; h(z) = S decode(z) is affine with Jacobian S diag(std) U_r (:meth:`PDMD.observation_matrix`).
@@ -58,93 +58,11 @@ import torch
 
 from ..dataset import Dataset
 from .latent_model import ArrayLike, LatentModel
+from .pod import streamed_pod
 from .presets import BenchmarkShape
 
 #: PyDMD's warning about the condition number of the snapshots it fits (pydmd/snapshots.py).
 _CONDITION_WARNING = re.compile(r"Input data condition number ([-+]?[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)")
-
-
-#: Seed of :func:`sign_reference`.
-SIGN_SEED = 20240613
-
-
-def sign_reference(n: int) -> torch.Tensor:
-    """The fixed vector g (n,) float64 that orients the POD basis: each basis vector u has g^T u > 0.
-
-    Standard normal draws of numpy's legacy ``RandomState`` (whose stream numpy keeps fixed across versions
-    and platforms). g^T u is then N(0, 1) for any unit vector u, so it is never near zero by structure, as
-    the largest entry of a mode can be (the two mirror-image extremes of an antisymmetric mode are equal
-    up to round-off); a sign flip would need |g^T u| at round-off level.
-    """
-    return torch.from_numpy(np.random.RandomState(SIGN_SEED).standard_normal(n))
-
-
-def streamed_pod(
-    n_blocks: int,
-    load_block: Callable[[int], torch.Tensor],
-    r: int,
-    *,
-    oversample: int = 10,
-    power_iterations: int = 2,
-    seed: int = 0,
-) -> dict[str, Any]:
-    """Rank-r POD of snapshots delivered block by block, by randomized SVD with streamed products.
-
-    ``load_block(b)`` returns block ``b`` of snapshots as rows, a (M_b, N) tensor (its dtype and device
-    are used throughout). With X = [S_0; S_1; ...]^T (N x M) it follows Halko, Martinsson and Tropp
-    (2011), Alg. 4.4: Y = X Omega, then ``power_iterations`` times Y = X X^T orth(Y), then
-    B = orth(Y)^T X and an SVD of the small B. Each stage is one pass over the blocks.
-
-    Returns ``basis`` (N, r) with orthonormal columns, ``singular_values`` (r,), ``coefficients`` a list
-    of (M_b, r) blocks U_r^T X, ``energy`` the fraction of sum ||x||^2 captured, ``passes``. The sign of
-    each basis vector is fixed by :func:`sign_reference` (g^T u_j > 0), so that the result does not depend
-    on the sign LAPACK happens to pick.
-    """
-    if n_blocks < 1:
-        raise ValueError("streamed_pod needs at least one block of snapshots")
-    gen = torch.Generator().manual_seed(seed)
-    y = None
-    sizes: list[int] = []
-    total_energy = 0.0
-    for b in range(n_blocks):
-        s = load_block(b)
-        sizes.append(s.shape[0])
-        if y is None:
-            y = torch.zeros(s.shape[1], r + oversample, dtype=s.dtype, device=s.device)
-        omega = torch.randn(s.shape[0], y.shape[1], generator=gen, dtype=s.dtype).to(s.device)
-        y += s.T @ omega
-        total_energy += float((s * s).sum())
-    n_snapshots = sum(sizes)
-    k = min(r + oversample, n_snapshots, y.shape[0])
-    if r > k:
-        raise ValueError(f"POD rank r = {r} exceeds the number of snapshots ({n_snapshots}) or grid values")
-    y = y[:, :k]
-    passes = 1
-    for _ in range(power_iterations):
-        q = torch.linalg.qr(y).Q
-        y = torch.zeros_like(q)
-        for b in range(n_blocks):
-            s = load_block(b)
-            y += s.T @ (s @ q)
-        passes += 1
-    q = torch.linalg.qr(y).Q
-    small = torch.cat([(load_block(b) @ q).T for b in range(n_blocks)], dim=1)  # B = Q^T X, (k, M)
-    passes += 1
-    ub, sv, vt = torch.linalg.svd(small, full_matrices=False)
-    basis = q @ ub[:, :r]
-    # LAPACK may return either sign for each singular pair, and which one depends on the thread count and the
-    # CPU. Fix it: every basis vector has a positive projection on a fixed pseudo-random vector.
-    sign = torch.sign(sign_reference(basis.shape[0]).to(basis) @ basis)
-    sign[sign == 0] = 1
-    basis = basis * sign
-    coeffs = (sv[:r, None] * (vt[:r] * sign[:, None])).T  # U_r^T X = Sigma_r V_r^T, as rows (M, r)
-    return {
-        "basis": basis,
-        "singular_values": sv[:r],
-        "coefficients": list(torch.split(coeffs, sizes)),
-        "energy": float((sv[:r] ** 2).sum()) / total_energy if total_energy > 0 else 1.0,
-        "passes": passes,
-    }
 
 
 class _ReducedCoordinates:
@@ -322,6 +240,7 @@ class PDMD(LatentModel):
 
     def _reset_dmd(self) -> None:
         self._pdmd = None
+        self._forecast_cache = None
         self._operator_cache.clear()
 
     def parametric_dmd(self) -> Any:
@@ -384,6 +303,35 @@ class PDMD(LatentModel):
         ops = np.stack([self._operator_cache[float(m)] for m in mu_np])
         return torch.as_tensor(ops, device=self.stats_mean.device)
 
+    def differentiable_operator(self, mu: torch.Tensor) -> torch.Tensor:
+        """A~(mu) (B, r, r) float64 as a torch function of ``mu`` (B,): the same numbers as
+        :meth:`online_operator` (to round-off), differentiable in mu, for a filter that estimates mu.
+
+        The RBF interpolant of Eq. A3 is linear in the values it interpolates, so the interpolated coefficients
+        are ``W(mu) @ F``: ``F`` the DMD-forecast coefficients of the training parameters (n_train, n_t, r),
+        ``W(mu)`` the interpolant's cardinal weights, [phi(eps |mu - mu_j|), 1] times the inverse of the
+        system scipy solves (the multiquadric kernel with its ridge, bordered by the constant). Eq. A4 is then
+        the Tikhonov (or pseudoinverse) fit in torch."""
+        from .rbf import cardinal_weights
+
+        weights = cardinal_weights(self.train_params.cpu().numpy()[:, None], mu.to(torch.float64),
+                                   self.rbf_smoothing)  # (B, n_train)
+        z = torch.einsum("bj,jtr->btr", weights, self._forecast_training_coefficients())
+        z0, z1 = z[:, :-1].mT, z[:, 1:].mT  # (B, r, n_t - 1)
+        if self.pinv_rtol is not None:
+            return z1 @ torch.linalg.pinv(z0, rtol=self.pinv_rtol)
+        lam2 = (self.operator_tikhonov * torch.linalg.matrix_norm(z0, ord=2)) ** 2
+        gram = z0 @ z0.mT + lam2[:, None, None] * torch.eye(self.r, dtype=z.dtype, device=z.device)
+        return torch.linalg.solve(gram, z0 @ z1.mT).mT  # Z1 Z0^T (Z0 Z0^T + lambda^2 I)^-1
+
+    def _forecast_training_coefficients(self) -> torch.Tensor:
+        """The DMD-forecast coefficients of the training parameters that Eq. A3 interpolates, (n_train, n_t, r)."""
+        if getattr(self, "_forecast_cache", None) is None:
+            pdmd = self.parametric_dmd()
+            forecast = np.real(pdmd._predict_modal_coefficients()).reshape(len(self.train_params), self.r, -1)
+            self._forecast_cache = torch.as_tensor(np.ascontiguousarray(forecast.transpose(0, 2, 1)))
+        return self._forecast_cache.to(self.stats_mean.device)
+
     def fit_operator(self, coefficients: np.ndarray) -> np.ndarray:
         """Eq. A4 for one coefficient sequence (n_t, r): the A (r, r) with z_{k+1} ~ A z_k, float64.
 
@@ -423,7 +371,9 @@ class PDMD(LatentModel):
         a 99-step Burgers run by up to 1e-3 relative between thread counts; rounding only the result keeps
         float32 runs within 1e-4 of float64 ones."""
         z = self._latent(z)
-        a = self.online_operator(self._param(mu, z.shape[0]))
+        mu = self._param(mu, z.shape[0])
+        # differentiated in mu (a filter estimating it): the torch operator; else the cached PyDMD one
+        a = self.differentiable_operator(mu) if mu.requires_grad else self.online_operator(mu)
         return (a @ z.to(a.dtype)[..., None])[..., 0].to(z.dtype)
 
     def forecast_jacobian(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:

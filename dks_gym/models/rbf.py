@@ -26,6 +26,8 @@ from numpy.typing import ArrayLike
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial.distance import pdist, squareform
 
+import torch
+
 
 def default_epsilon(points: ArrayLike) -> float:
     """ezyrb's default shape parameter for points (n, d): (prod of nonzero edges / d)^(1 / their count).
@@ -106,3 +108,24 @@ class MultiquadricRBF:
         if self.interpolator is None:
             raise RuntimeError("this MultiquadricRBF is not fitted yet: call fit(points, values)")
         return self.interpolator(_points(points))
+
+
+def cardinal_weights(points: ArrayLike, at: "torch.Tensor", smoothing: float = 0.0) -> "torch.Tensor":
+    """The weights W (B, n) with which :class:`MultiquadricRBF` (ezyrb's epsilon, ``smoothing`` relative to
+    :func:`kernel_scale`) fitted on ``points`` (n, 1) predicts any values V (n, ...) at the parameters ``at``
+    (B,): prediction = W @ V, as a torch function of ``at`` (float64), so that it can be differentiated.
+
+    The interpolant is linear in the values: W = [phi(eps |at - x_j|), 1] times the inverse of the bordered
+    system scipy solves (the kernel -sqrt(1 + r^2) on eps-scaled distances, the ridge on its diagonal, the
+    constant of degree 0)."""
+    xi = _points(points)
+    eps = default_epsilon(xi)
+    ridge = smoothing * kernel_scale(xi, eps) if smoothing > 0 else 0.0
+    x = torch.as_tensor(xi[:, 0], dtype=torch.float64, device=at.device)
+    n = len(x)
+    system = torch.zeros(n + 1, n + 1, dtype=torch.float64, device=at.device)
+    system[:n, :n] = -torch.sqrt(1 + (eps * (x[:, None] - x[None, :])) ** 2)
+    system[:n, :n] += ridge * torch.eye(n, dtype=torch.float64, device=at.device)
+    system[:n, n] = system[n, :n] = 1.0
+    row = torch.cat([-torch.sqrt(1 + (eps * (at[:, None] - x[None, :])) ** 2), at.new_ones(len(at), 1)], dim=1)
+    return torch.linalg.solve(system, row.mT).mT[:, :n]  # the bordered system is symmetric

@@ -20,6 +20,11 @@ with the readings (Eq. 15-17) through h(z) = S(decode(z)) at the sensors the env
   ``spread_skill`` (sqrt(mean std^2 / MSE): 1 when calibrated, :mod:`~dks_gym.assimilation.spread`) over the
   scored channels;
   wall time per DA step is in ``wrapper.filter.diagnostics`` (in info it would break determinism);
+* with ``FilterConfig(parameter="estimate")`` (mu estimated with the state; needed on an env made with
+  ``parameter="hidden"``): ``mu_estimate``, ``mu_std``, the central 95 % interval ``mu_low``, ``mu_high``,
+  ``mu_out_of_range`` (the estimate left the training range: the model extrapolates), and its scores against
+  the env's true mu, ``mu_relative_error`` and ``mu_in_interval``, and ``mu_std_ratio`` (the estimated
+  coordinate's std over its prior's: near 1, the sensors have not identified mu);
 * reward: minus the MSE over the scored channels against ``env.unwrapped.true_state`` (physical units),
   or over standardized channels with ``reward="normalized_mse"``.
 """
@@ -110,6 +115,8 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self.estimate_std = snap.estimate_std[0].cpu().numpy().astype(np.float32)
             info.update(estimate_std=self.estimate_std, coverage=float(snap.coverage[0]), nees=float(snap.nees[0]),
                         crps=float(snap.crps[0]), spread_skill=float(snap.spread_skill[0]))
+        for name, values in (snap.parameter or {}).items():
+            info[name] = bool(values[0]) if values.dtype == bool else float(values[0])
         return info
 
     def render(self) -> np.ndarray | None:

@@ -112,6 +112,7 @@ class LatentFilterVectorEnv(VectorEnv):
         infos: dict[str, Any] = {
             key: np.array([info[key] for info in env_infos])
             for key in ("mu", "time_index", "trajectory", "sigma", "sensors", "mask")
+            if key in env_infos[0]  # mu is not there on envs that hide it
         }
         infos["mse"], infos["normalized_mse"] = snap.mse, snap.normalized_mse
         infos["relative_l2"], infos["score"] = snap.relative_l2, snap.score
@@ -121,6 +122,7 @@ class LatentFilterVectorEnv(VectorEnv):
             infos["estimate_std"] = snap.estimate_std.cpu().numpy().astype(np.float32)
             infos["coverage"], infos["nees"], infos["crps"] = snap.coverage, snap.nees, snap.crps
             infos["spread_skill"] = snap.spread_skill
+        infos.update(snap.parameter or {})
         return infos
 
     def close_extras(self, **kwargs: Any) -> None:
