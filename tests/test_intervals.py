@@ -112,11 +112,12 @@ def test_tables_print_the_stored_interval_and_drop_its_column_for_older_records(
     assert shown(0.0123, 1234.0) == "[0.0123, 1.23e+03]" and shown(None, 1.0) == "-"
     doc = load_results(Path(__file__).resolve().parents[1] / "docs/results/burgers-lite/results.json.gz")
     ekf = next(r for r in doc["records"] if r["experiment"] == "main" and r["filter"] == "ekf")
-    assert mse_ci95(dict(ekf, final_mse_ci95=[1.0, 2.0])) == "[1, 2]"  # stored, not recomputed
-    assert mse_ci95(ekf) in tables_markdown(doc) and "EKF 95 % CI" in tables_markdown(doc)
+    # stored, not recomputed: the interquartile mean, then the interval
+    assert mse_ci95(dict(ekf, final_mse_iqm=1.5, final_mse_ci95=[1.0, 2.0])) == "1.5 [1, 2]"
+    assert mse_ci95(ekf) in tables_markdown(doc) and "EKF IQM [95 % CI]" in tables_markdown(doc)
     for record in doc["records"]:
         record.pop("final_mse_ci95", None)
-    assert "EKF 95 % CI" not in tables_markdown(doc)
+    assert "EKF IQM [95 % CI]" not in tables_markdown(doc)
 
 
 def test_the_placement_ranking_states_each_paired_interval_and_whether_it_includes_zero() -> None:

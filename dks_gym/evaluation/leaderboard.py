@@ -157,6 +157,7 @@ def columns(page: Path) -> list[Column]:
         Column("method", lambda row: row["entry"].method),
         Column("rel. L2 (final)", lambda row: percent(get(row, "final_rel_l2_mean"))),
         Column("95 % CI", lambda row: interval(*(get(row, "final_rel_l2_ci95") or (None, None)), fmt=percent)),
+        Column("IQM", lambda row: percent(get(row, "final_rel_l2_iqm")), optional=True),
         Column("score", lambda row: fixed(get(row, "final_score_mean"), 1)),
         Column("MSE (final)", lambda row: sci(get(row, "final_mse_mean"))),
         Column("95 % coverage (final)", lambda row: fixed(get(row, "final_coverage_mean"), 2), optional=True),
@@ -176,7 +177,8 @@ def leaderboard_page(sources: Sequence[str | Path], out: str | Path = DEFAULT_OU
         f"Made by\n\n```bash\n{command}\n```\n\nfrom the results files it names; rerun it to regenerate this page.",
         ("Each table ranks the runs made under its benchmark's protocol exactly by the relative L2 error "
          "‖x̂ − x‖ / ‖x‖ over the scored channels at the final frame, mean over the test episodes, with its 95 % "
-         "stratified bootstrap interval as stored in the results file; score: 100 (1 − relative L2); MSE: Eq. 18 at "
+         "stratified bootstrap interval and its interquartile mean (IQM: the mean of the middle half of the "
+         "episodes) as stored in the results file; score: 100 (1 − relative L2); MSE: Eq. 18 at "
          "the final frame, physical units; 95 % coverage: the fraction of scored cells inside the method's central "
          "95 % interval at the final frame, where it gives a predictive std. A latent model's rows come from the "
          "`calibrated` experiment of `dks-gym reproduce` (Q and P0 calibrated from each model's own errors: the "

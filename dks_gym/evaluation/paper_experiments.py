@@ -75,7 +75,7 @@ class Main(Experiment):
                     for m in MODELS]
             columns = [MODEL, Column("forward run", lambda r: mse(r["forward"])),
                        Column("EKF", lambda r: mse(r["ekf"])), *rel_l2_columns({"forward": "forward", "ekf": "EKF"}),
-                       Column("EKF 95 % CI", lambda r: mse_ci95(r["ekf"]), optional=True),
+                       Column("EKF IQM [95 % CI]", lambda r: mse_ci95(r["ekf"]), optional=True),
                        Column("EKF / forward", lambda r: mse_ratio(r["ekf"], r["forward"])),
                        Column("forward / MLP fwd", lambda r: mse_ratio(r["forward"], r["base"])),
                        Column("EKF / MLP fwd", lambda r: mse_ratio(r["ekf"], r["base"]))]

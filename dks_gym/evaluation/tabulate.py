@@ -90,10 +90,12 @@ def mse(rec: Record | None) -> str:
 
 
 def mse_ci95(rec: Record | None) -> str:
-    """A record's stored 95 % bootstrap interval of the mean final MSE (never recomputed: another scipy may
-    draw differently); ``-`` for a record without it."""
-    bounds = (rec or {}).get("final_mse_ci95")
-    return MISSING if bounds is None else interval(*bounds)
+    """A record's stored interquartile mean of the final MSE over the trajectories and the 95 % bootstrap
+    interval of its mean, ``IQM [low, high]`` (never recomputed: another scipy may draw differently); ``-`` for
+    a record without them."""
+    rec = rec or {}
+    bounds = rec.get("final_mse_ci95")
+    return MISSING if bounds is None else f"{sci(rec.get('final_mse_iqm'))} {interval(*bounds)}"
 
 
 def mse_ratio(num: Record | None, den: Record | None) -> str:
