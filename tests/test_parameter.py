@@ -176,3 +176,26 @@ def test_pdmd_operator_is_differentiable_and_equals_the_pydmd_one(burgers_paper:
     h = 1e-4
     central = (model.differentiable_operator(mu + h).sum((1, 2)) - model.differentiable_operator(mu - h).sum((1, 2)))
     np.testing.assert_allclose(grad.numpy(), (central / (2 * h)).numpy(), rtol=1e-3)  # O(h^2) truncation
+
+
+def test_the_estimated_parameter_works_with_bias_estimation_missing_readings_and_the_vector_env(
+        burgers_paper: Path) -> None:
+    """[z; s; b]: with sensor biases estimated on top and a quarter of the readings dropped, the filter runs,
+    keeps mu's estimate in the training range's neighbourhood and returns the biases; the vector env on
+    hidden-parameter envs gives the same per-element keys as arrays."""
+    from dks_gym.wrappers import LatentFilter
+
+    config = FilterConfig(parameter="estimate", bias_drift=0.0)
+    env = LatentFilter(gym.make("DKS/Burgers-v0", parameter="hidden", faults={"dropout": 0.25}), model="mlp",
+                       config=config)
+    _, info = env.reset(seed=1, options={"trajectory": 5})
+    for _ in range(15):
+        _, _, _, _, info = env.step(0)
+    assert not info["mask"].all()  # readings were missing
+    assert env.assimilation.bias().shape == (1, 16) and np.isfinite(env.assimilation.bias()).all()
+    assert 0.005 < info["mu_estimate"] < 2.0 and np.isfinite(info["mse"])
+    venv = gym.make_vec("DKS/Burgers-v0", num_envs=3, vectorization_mode="vector_entry_point", model="mlp",
+                        config=FilterConfig(parameter="estimate"), parameter="hidden")
+    _, infos = venv.reset(seed=0)
+    _, _, _, _, infos = venv.step(np.zeros(3, dtype=np.int64))
+    assert "mu" not in infos and infos["mu_estimate"].shape == (3,) and infos["mu_in_interval"].dtype == bool
