@@ -58,27 +58,59 @@ def test_the_committed_results_weigh_at_most_15_mb() -> None:
 
 
 #: The results READMEs that lead with the relative L2 error: their first table, rebuilt from the records here.
-LEAD_TABLES = ("burgers-lite-calibrated", "cylinder", "dambreak")
-LEAD_HEADER = "| model | forward run | EKF | EnKF n = 20 | calibrated EKF | calibrated EnKF |"
+LEAD_TABLES = ("burgers", "burgers-lite", "burgers-lite-calibrated", "cylinder", "dambreak")
+#: The lead tables' columns: the records each quotes (experiment, filter, further criteria), approximate IC.
+LEAD_COLUMNS = {"forward run": ("main", "forward", {"initial": "approximate"}),
+                "EKF": ("main", "ekf", {"initial": "approximate"}), "EnKF n = 20": ("enkf", "enkf", {}),
+                "calibrated EKF": ("calibrated", "ekf", {}), "calibrated EnKF": ("calibrated", "enkf", {})}
 
 
 @pytest.mark.parametrize("name", LEAD_TABLES)
 def test_the_results_readmes_lead_with_the_records_relative_errors(name: str) -> None:
-    """Each README's relative-L2 table equals the committed records' final relative L2 (approximate IC)
-    printed as the tables print it, so the prose cannot drift from the results."""
+    """Each README's first table is its relative-L2 table and equals the committed records' final relative L2
+    (approximate IC) printed as the tables print it, so the prose cannot drift from the results."""
+    from dks_gym.evaluation.figures import MODEL_LABELS
     from dks_gym.evaluation.formatting import percent
 
     doc = load_results(RESULTS / name / "results.json.gz")
     lines = (RESULTS / name / "README.md").read_text().splitlines()
-    start = lines.index(LEAD_HEADER)
+    start = next(i for i, line in enumerate(lines) if line.startswith("| "))
+    header, *rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[start:start + 6]]
+    assert header[:3] == ["model", "forward run", "EKF"] and set(header[1:]) <= set(LEAD_COLUMNS), header
+    for row, model in zip(rows[1:], ("koopman", "pdmd", "mlp", "xlstm"), strict=True):
+        expected = [percent(_lead_record(doc, model, h)["final_rel_l2_mean"]) for h in header[1:]]
+        assert row == [MODEL_LABELS[model], *expected], (name, model)
+
+
+def _lead_record(doc: dict, model: str, column: str) -> dict:
+    """The record a lead-table column quotes for ``model``, checked to be the paper's scenario (m = 16)."""
+    experiment, filt, criteria = LEAD_COLUMNS[column]
+    rec = next(r for r in doc["records"] if r["experiment"] == experiment and r["model"] == model
+               and r["filter"] == filt and all(r[k] == v for k, v in criteria.items()))
+    scenario = (rec["initial"], rec["noise"], rec["r"], rec["T"], rec["n_members"])
+    assert scenario == ("approximate", 0.2, 32, 1, 20 if filt == "enkf" else None), (column, scenario)
+    return rec
+
+
+def test_the_results_index_quotes_burgers_at_paper_scale_from_the_records() -> None:
+    """docs/results/README.md's Burgers-at-paper-scale table: each error cell is the record's relative L2 with
+    its MSE and the paper's MSE in brackets, printed by the tables' formatters."""
+    from dks_gym.evaluation.figures import MODEL_LABELS
+    from dks_gym.evaluation.formatting import percent, sci
+    from dks_gym.evaluation.tabulate import paper_mse
+
+    doc = load_results(RESULTS / "burgers" / "results.json.gz")
+    lines = (RESULTS / "README.md").read_text().splitlines()
+    start = lines.index("| model | rollout (MSE; paper) | EKF (MSE; paper) | EnKF n = 20 (MSE; paper) "
+                        "| max_k ‖F_k‖ (paper) |")
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[start + 2:start + 6]]
-    runs = (("main", "forward", {"initial": "approximate"}), ("main", "ekf", {"initial": "approximate"}),
-            ("enkf", "enkf", {}), ("calibrated", "ekf", {}), ("calibrated", "enkf", {}))
-    for row, model in zip(rows, ("koopman", "pdmd", "mlp", "xlstm")):
-        expected = [percent(next(r for r in doc["records"] if r["experiment"] == e and r["model"] == model
-                                 and r["filter"] == f and all(r[k] == v for k, v in c.items()))["final_rel_l2_mean"])
-                    for e, f, c in runs]
-        assert row[1:] == expected, (name, model)
+    for row, model in zip(rows, ("koopman", "pdmd", "mlp", "xlstm"), strict=True):
+        expected = []
+        for column in ("forward run", "EKF", "EnKF n = 20"):
+            rec = _lead_record(doc, model, column)
+            paper = paper_mse("burgers", model, rec["filter"])
+            expected.append(f"{percent(rec['final_rel_l2_mean'])} ({sci(rec['final_mse_mean'])}; paper {paper})")
+        assert row[:4] == [MODEL_LABELS[model], *expected], model
 
 
 def test_every_committed_record_holds_its_relative_error() -> None:

@@ -289,9 +289,11 @@ class Ensemble(Experiment):
     def tables(self, records: Records) -> list[Section]:
         paper = PAPER_ENSEMBLE.get(records.benchmark, PAPER_ENSEMBLE["cylinder"])
         which = "paper" if records.benchmark in PAPER_ENSEMBLE else "paper (cylinder)"
-        rows = [{"model": m, **{n: records.find(experiment="ensemble", model=m, filter="enkf", n_members=n)
-                                for n in self.SIZES}} for m in NEURAL]
-        columns = [MODEL, *[Column(f"n = {n}", lambda r, n=n: mse(r[n])) for n in self.SIZES],
+        sizes = {f"n = {n}": n for n in self.SIZES}  # column header: ensemble size
+        rows = [{"model": m, **{h: records.find(experiment="ensemble", model=m, filter="enkf", n_members=n)
+                                for h, n in sizes.items()}} for m in NEURAL]
+        columns = [MODEL, *[Column(h, lambda r, h=h: mse(r[h])) for h in sizes],
+                   *rel_l2_columns({h: h for h in sizes}),
                    Column(f"{which} n = 20 / 40 / 64",
                           lambda r: " / ".join(sci(paper[r["model"]][n]) for n in self.SIZES))]
         return [Section("EnKF ensemble size (Table VIII)", (tabulate(rows, columns), *self._collapse(records)))]
