@@ -47,7 +47,8 @@ def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None
     """Run the paper's Section IV experiments on BENCHMARK; write results.json.gz, tables.md and figures/.
 
     Experiments: main (forward vs EKF, approximate and exact IC), enkf, ensemble (n = 20/40/64), noise
-    (10%/30%), latent (r = 16/64), multistep (T = 2/4/8), operator_norm, timing, calibrated. Missing models
+    (10%/30%), latent (r = 16/64), multistep (T = 2/4/8), operator_norm, timing, calibrated, parameter (mu
+    known, estimated with the state, or at the prior's mean). Missing models
     are trained (finished trainings are reused, interrupted ones resumed). The results file is rewritten
     after every run; a rerun keeps the records of the experiments it does not run, and --skip-done continues
     an interrupted run with the runs still missing.
