@@ -172,6 +172,33 @@ def test_interrupted_training_resumes_to_bit_identical_weights(ds, tmp_path):
     assert restarted.new_steps == 6
 
 
+def test_a_finished_constant_rate_run_continues_to_more_steps_bit_for_bit(ds, tmp_path):
+    """Training in stages (validation/training_schedule.py): a finished 3-step run of a constant-rate schedule
+    continued to 5 steps equals a 5-step run at once; a schedule whose learning rate depends on the step count
+    (the lite preset's warm-up and cosine decay) refuses to continue, saying why."""
+    def paper(steps):
+        return {"dataset": ds, "schedule": training_schedule("burgers", "paper", steps=steps, batch_size=4),
+                "progress": False}
+
+    once = train_model("burgers", "mlp", R, "paper", path=tmp_path / "once.safetensors", **paper(5))
+    staged = tmp_path / "staged.safetensors"
+    train_model("burgers", "mlp", R, "paper", path=staged, **paper(3))
+    continued = train_model("burgers", "mlp", R, "paper", path=staged, **paper(5))
+    assert continued.new_steps == 2 and read_metadata(staged)["schedule"]["steps"] == 5
+    np.testing.assert_array_equal(continued.losses, once.losses)
+    a, b = once.model.state_dict(), continued.model.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="cannot be resumed"):  # fewer steps: not a continuation
+        train_model("burgers", "mlp", R, "paper", path=staged, **paper(4))
+    lite = tmp_path / "lite.safetensors"
+    kwargs = {"dataset": ds, "progress": False}
+    train_model("burgers", "mlp", R, "lite", path=lite,
+                schedule=training_schedule("burgers", "lite", steps=3, batch_size=4), **kwargs)
+    with pytest.raises(ValueError, match="constant learning rate"):
+        train_model("burgers", "mlp", R, "lite", path=lite,
+                    schedule=training_schedule("burgers", "lite", steps=5, batch_size=4), **kwargs)
+
+
 # Checkpoints -------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", (*NEURAL, "pdmd"))
 def test_checkpoint_round_trip_is_bit_identical(ds, trained, kind):

@@ -18,6 +18,7 @@ import torch
 from ..dataset import Dataset
 from .checkpoint import check_metadata, read_checkpoint, save_checkpoint
 from .latent_model import NeuralLatentModel
+from .schedule import TrainingSchedule
 from .validation import ValidationMonitor
 from .windows import WindowSampler
 
@@ -61,17 +62,24 @@ class TrainingState:
 
 
 def check_resumable(meta: dict[str, Any], path: Path, name: str, model: str, preset: str, r: int, T: int,
-                    dataset: Dataset, settings: dict[str, Any]) -> None:
+                    dataset: Dataset, settings: dict[str, Any], schedule: TrainingSchedule | None = None) -> None:
     """Refuse (ValueError) to resume the checkpoint with metadata ``meta`` for another model or dataset, or with
-    other ``settings`` (batch size, lr, seed, schedule) than it was trained with."""
+    other ``settings`` (batch size, lr, seed, schedule) than it was trained with. A longer ``schedule`` that
+    :meth:`~dks_gym.models.schedule.TrainingSchedule.extends` the stored one may continue it (more steps of a
+    constant-rate run, e.g. the paper preset's, in stages)."""
     check_metadata(meta, path, benchmark=name, model=model, r=r, preset=preset, T=T, dataset=dataset)
     for key, value in settings.items():
-        if meta.get(key) != value:
-            raise ValueError(
-                f"checkpoint {path} was trained with {key} = {meta.get(key)!r}, not {value!r}, so it cannot be "
-                f"resumed with these settings; use the same settings, or start afresh with --restart "
-                f"(resume=False), which overwrites it"
-            )
+        if meta.get(key) == value or (key == "schedule" and schedule is not None
+                                      and isinstance(meta.get(key), dict) and schedule.extends(meta[key])):
+            continue
+        hint = (" (a run continues a checkpoint to more steps only with a constant learning rate and no "
+                "validation: the lite schedules' warm-up, cosine decay and validations depend on the step count)"
+                if key == "schedule" else "")
+        raise ValueError(
+            f"checkpoint {path} was trained with {key} = {meta.get(key)!r}, not {value!r}, so it cannot be "
+            f"resumed with these settings{hint}; use the same settings, or start afresh with --restart "
+            f"(resume=False), which overwrites it"
+        )
 
 
 __all__ = ["LAST", "TrainingState", "check_resumable"]

@@ -62,6 +62,17 @@ class TrainingSchedule:
         if not self.lr > 0:
             raise ValueError(f"learning rate must be positive, got {self.lr}")
 
+    def extends(self, record: dict[str, Any]) -> bool:
+        """Whether a run with this schedule may continue a checkpoint trained with the schedule ``record``
+        (:meth:`record`) to more steps, bit for bit as if it had run them at once: the two differ in ``steps``
+        alone, this one has at least as many, and nothing else depends on the step count (a constant learning
+        rate, no warm-up, no validation cadence, no epochs)."""
+        mine = self.record()
+        if set(record) != set(mine) or any(record[k] != mine[k] for k in mine if k != "steps"):
+            return False
+        constant = self.final_lr is None and self.warmup == 0 and not self.validations and self.epochs is None
+        return constant and self.steps >= int(record["steps"])
+
     @property
     def warmup_steps(self) -> int:
         """The number of warm-up steps."""

@@ -247,7 +247,7 @@ def train_model(
         previous = None
         if resume and path.exists():
             previous = read_metadata(path)
-            check_resumable(previous, path, name, model, preset, r, T, dataset, plan.settings())
+            check_resumable(previous, path, name, model, preset, r, T, dataset, plan.settings(), plan.schedule)
             if previous["steps_done"] >= plan.schedule.steps or previous.get("stopped_early"):
                 return _load_finished(plan, previous, start_time)  # done: load without the data
         run = set_up_training(plan, previous, in_memory=in_memory, progress=progress)
