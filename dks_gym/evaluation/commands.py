@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from ..benchmarks import BENCHMARKS
-from ..names import MODEL_KINDS
+from ..names import FILTERS, MODEL_KINDS
 from .reproduce import EXPERIMENTS
 
 
@@ -137,7 +137,7 @@ def expected_command(benchmark: str | None, check: bool, markdown: bool, device:
         return
     try:
         ds = load_dataset(benchmark, "paper")
-        bar = tqdm(total=12, desc=f"{benchmark}: shipped models x filters", unit="run")
+        bar = tqdm(total=len(MODEL_KINDS) * len(FILTERS), desc=f"{benchmark}: shipped models x filters", unit="run")
         records = measure_expected(benchmark, ds, device=device, on_record=lambda rec: bar.update(1))
         bar.close()
     except _errors() as exc:

@@ -193,6 +193,28 @@ def timing_figure(records: Sequence[dict[str, Any]], path: str | Path, *, title:
     return save_figure(fig, path)
 
 
+def parameter_figure(curves: dict[tuple[str, str], Sequence[float]], path: str | Path, *,
+                     title: str | None = None) -> Path:
+    """The median relative error of an estimated parameter over the frames, one panel per filter and one line
+    per model (``curves`` by (model, filter))."""
+    plt = _pyplot()
+    filters = [f for f in ("forward", "ekf", "enkf") if any(key[1] == f for key in curves)] or ["ekf"]
+    fig, axes = plt.subplots(1, len(filters), figsize=(4.2 * len(filters), 3.0), sharey=True, squeeze=False)
+    for ax, filt in zip(axes[0], filters):
+        for model in MODEL_ORDER:
+            if (model, filt) in curves:
+                curve = np.asarray(curves[model, filt], dtype=float)
+                ax.plot(np.arange(len(curve)), curve, color=MODEL_COLORS[model], label=MODEL_LABELS[model])
+        ax.set_yscale("log")
+        ax.set_title(f"{FILTER_LABELS[filt]}: median relative error of mu", fontsize=9)
+        ax.set_xlabel("frame")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return save_figure(fig, path)
+
+
 def spread_figure(
     rows: Sequence[tuple[str, dict[str, dict[str, Any] | None]]],
     path: str | Path,
@@ -397,6 +419,7 @@ __all__ = [
     "MODEL_ORDER",
     "normalized_bar_chart",
     "normalized_values",
+    "parameter_figure",
     "reconstruction_figure",
     "spread_figure",
     "temporal_error_figure",

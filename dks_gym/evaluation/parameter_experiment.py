@@ -13,17 +13,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 
 from ..assimilation import AssimilationResult
+from ..assimilation.config import PARAMETER_CHOICES
 from ..dataset import Dataset
 from .experiment import Experiment, Run, Section, register
-from .figures import FILTER_LABELS, MODEL_COLORS, MODEL_LABELS, MODEL_ORDER, _pyplot, save_figure
+from .figures import FILTER_LABELS, MODEL_ORDER, parameter_figure
 from .formatting import MISSING, fixed, percent, sig
 from .tabulate import Column, Records, label, mse_ratio, rel_l2, tabulate
 
 PARAMETER_FILTERS = ("ekf", "enkf")
-PARAMETER_CHOICES = ("known", "estimate", "prior")
 
 
 def _scores(rec: dict | None) -> dict:
@@ -74,22 +73,11 @@ class Parameter(Experiment):
 
     def figures(self, records: Records, folder: Path, results: dict[tuple, AssimilationResult] | None = None,
                 dataset: Dataset | None = None) -> list[Path]:
-        plt = _pyplot()
-        fig, axes = plt.subplots(1, len(PARAMETER_FILTERS), figsize=(4.2 * len(PARAMETER_FILTERS), 3.0),
-                                 sharey=True, squeeze=False)
-        for ax, f in zip(axes[0], PARAMETER_FILTERS):
-            for m in MODEL_ORDER:
-                scores = _scores(records.find(experiment="parameter", model=m, filter=f, parameter="estimate"))
-                if scores:
-                    curve = np.asarray(scores["per_step_relative_error_median"], dtype=float)
-                    ax.plot(np.arange(len(curve)), curve, color=MODEL_COLORS[m], label=MODEL_LABELS[m])
-            ax.set_yscale("log")
-            ax.set_title(f"{FILTER_LABELS[f]}: median relative error of mu", fontsize=9)
-            ax.set_xlabel("frame")
-            ax.grid(alpha=0.3)
-        axes[0][0].legend(fontsize=8)
-        fig.suptitle(f"{records.benchmark}: the parameter estimated with the state", fontsize=10)
-        return [save_figure(fig, folder / "parameter.png")]
+        curves = {(m, f): scores["per_step_relative_error_median"] for f in PARAMETER_FILTERS for m in MODEL_ORDER
+                  if (scores := _scores(records.find(experiment="parameter", model=m, filter=f,
+                                                     parameter="estimate")))}
+        return [parameter_figure(curves, folder / "parameter.png",
+                                 title=f"{records.benchmark}: the parameter estimated with the state")]
 
 
-__all__ = ["PARAMETER_CHOICES", "PARAMETER_FILTERS", "Parameter"]
+__all__ = ["PARAMETER_FILTERS", "Parameter"]

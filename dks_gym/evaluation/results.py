@@ -89,6 +89,7 @@ from typing import Any, TypedDict
 import numpy as np
 
 from ..assimilation import ctf_score, parameter_summary
+from ..assimilation.config import PARAMETER_CHOICES
 from ..atomic import atomic_path
 from ..names import FILTERS, MODEL_KINDS
 from .intervals import interval_fields
@@ -103,7 +104,7 @@ RECORD_KEY = ("experiment", "model", "filter", "initial", "noise", "r", "T", "n_
 KEY_DEFAULTS = {"parameter": "known"}
 RECORD_FILTERS = FILTERS + ("none",)  # "none": an estimator's record (no filter)
 INITIALS = ("approximate", "exact")
-PARAMETERS = ("known", "estimate", "prior", "assumed")  # "assumed": a value given by the caller
+PARAMETERS = (*PARAMETER_CHOICES, "assumed")  # "assumed": a value given by the caller
 _REQUIRED_TOP = ("schema", "schema_version", "benchmark", "preset", "dataset", "config", "records")
 _REQUIRED_RECORD = RECORD_KEY[:-1] + (
     "batch", "final_mse_mean", "final_mse_std", "per_step_mse_mean", "per_trajectory_final_mse",

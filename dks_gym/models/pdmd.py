@@ -166,6 +166,7 @@ class PDMD(LatentModel):
         # PyDMD's condition number of the stacked coefficients when it exceeds 1e5 (see parametric_dmd).
         self.dmd_condition_number: float | None = None
         self._operator_cache: dict[float, np.ndarray] = {}
+        self._forecast_cache: torch.Tensor | None = None  # see _forecast_training_coefficients
 
     @property
     def settings(self) -> dict[str, float | None]:
@@ -326,7 +327,7 @@ class PDMD(LatentModel):
 
     def _forecast_training_coefficients(self) -> torch.Tensor:
         """The DMD-forecast coefficients of the training parameters that Eq. A3 interpolates, (n_train, n_t, r)."""
-        if getattr(self, "_forecast_cache", None) is None:
+        if self._forecast_cache is None:
             pdmd = self.parametric_dmd()
             forecast = np.real(pdmd._predict_modal_coefficients()).reshape(len(self.train_params), self.r, -1)
             self._forecast_cache = torch.as_tensor(np.ascontiguousarray(forecast.transpose(0, 2, 1)))
