@@ -169,8 +169,7 @@ class Assimilation:
         self._true_mu = np.array([e.mu for e in envs], dtype=np.float64)  # for scoring only
         self._coordinate, prior = None, None
         if choice == "known":
-            hidden = [i for i, e in enumerate(envs) if getattr(e, "parameter", "known") == "hidden"]
-            if hidden:
+            if any(getattr(e, "parameter", "known") == "hidden" for e in envs):
                 raise ValueError(f"the env{'s' if len(envs) > 1 else ''} hide{'' if len(envs) > 1 else 's'} mu "
                                  "(parameter='hidden'), so the filter cannot be told it: estimate it with "
                                  "FilterConfig(parameter='estimate') or assume a value with "
