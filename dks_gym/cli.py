@@ -225,7 +225,7 @@ def doctor() -> None:
 
 
 @main.command("train")
-@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False))
+@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False), required=False)
 @click.option("--model", "model", type=click.Choice([*MODEL_KINDS, "all"]), default="all",
               show_default=True, help="Latent model to train; 'all' trains the four in turn.")
 @click.option("--preset", type=click.Choice(["lite", "paper"]), default="lite", show_default=True,
@@ -241,6 +241,9 @@ def doctor() -> None:
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
 @click.option("--data-preset", type=click.Choice(PRESETS), default="paper", show_default=True,
               help="Dataset to train on ($DKS_GYM_HOME/data/BENCHMARK-PRESET.h5).")
+@click.option("--data", "data_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Train on this file in the dks-gym HDF5 schema instead: your own flow (a custom benchmark, "
+                   "BENCHMARK left out) or one of the four's.")
 @click.option("--resume/--restart", default=True, show_default=True,
               help="Continue from an existing checkpoint, or start afresh and overwrite it.")
 @click.option("--checkpoint-every", type=click.IntRange(min=1), default=None,
@@ -251,29 +254,26 @@ def doctor() -> None:
 @click.option("--export", is_flag=True,
               help="Write the trained lite models into the package's shipped weights (dks_gym/models/weights/): "
                    "the step that regenerates the shipped files.")
-def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | None, batch_size: int | None,
-          lr: float | None, seed: int, device: str, data_preset: str, resume: bool, checkpoint_every: int | None,
-          evaluate: bool, progress: bool, export: bool) -> None:
+def train(benchmark: str | None, model: str, preset: str, r: int, T: int, steps: int | None, batch_size: int | None,
+          lr: float | None, seed: int, device: str, data_preset: str, data_file: Path | None, resume: bool,
+          checkpoint_every: int | None, evaluate: bool, progress: bool, export: bool) -> None:
     """Train BENCHMARK's latent models into checkpoints under $DKS_GYM_HOME/models (pDMD: fit).
 
-    The end of training tunes each model's process-noise scale (`dks-gym calibrate`), so that its
-    checkpoint is ready for the filters."""
+    With --data FILE, train on that schema file: a custom benchmark (your own flow, any grid; its encoder and
+    decoder sized from the grid, docs/models.md) or one of the four's. The end of training tunes each model's
+    process-noise scale (`dks-gym calibrate`), so that its checkpoint is ready for the filters."""
     from .assimilation import tune_if_missing
-    from .dataset import DatasetMissing, SchemaError, load_dataset
     from .home import DataHomeError
     from .models.shipped import export_model
     from .models import one_step_error, train_model, training_schedule
 
     kinds = list(MODEL_KINDS) if model == "all" else [model]
-    try:
-        ds = load_dataset(benchmark.lower(), data_preset)
-    except (DatasetMissing, SchemaError) as exc:
-        raise click.ClickException(str(exc)) from exc
+    ds = _training_data(benchmark, data_preset, data_file)
     for kind in kinds:
         try:
             result = train_model(
-                benchmark.lower(), kind, r, preset, T, dataset=ds,
-                schedule=training_schedule(benchmark.lower(), preset, steps=steps, batch_size=batch_size, lr=lr),
+                ds.benchmark, kind, r, preset, T, dataset=ds,
+                schedule=training_schedule(ds.benchmark, preset, steps=steps, batch_size=batch_size, lr=lr),
                 seed=seed, device=device, resume=resume, checkpoint_every=checkpoint_every, progress=progress,
             )
         except (ValueError, DataHomeError) as exc:
@@ -309,35 +309,46 @@ def train(benchmark: str, model: str, preset: str, r: int, T: int, steps: int | 
             )
 
 
+def _training_data(benchmark: str | None, data_preset: str, data_file: Path | None) -> Any:
+    """The dataset `train` and `calibrate` work on: BENCHMARK's data-home file, or the schema file --data names
+    (which must hold BENCHMARK when both are given)."""
+    from .dataset import DatasetMissing, SchemaError, load_dataset
+
+    if benchmark is None and data_file is None:
+        raise click.UsageError("name a BENCHMARK (burgers, cylinder, dambreak, sphere) or a schema file with --data")
+    try:
+        return load_dataset(None if benchmark is None else benchmark.lower(), data_preset, data_file)
+    except (DatasetMissing, SchemaError) as exc:
+        raise click.ClickException(str(exc)) from exc
+
+
 @main.command("calibrate")
-@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False))
+@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False), required=False)
 @click.option("--model", "model", type=click.Choice([*MODEL_KINDS, "all"]), default="all", show_default=True,
               help="Latent model to tune; 'all' tunes the four in turn.")
 @click.option("--preset", type=click.Choice(["lite", "paper"]), default="lite", show_default=True)
 @click.option("--r", "r", type=click.IntRange(min=1), default=32, show_default=True, help="Latent dimension.")
 @click.option("--T", "T", type=click.IntRange(min=1), default=1, show_default=True, help="Training horizon.")
 @click.option("--data-preset", type=click.Choice(PRESETS), default="paper", show_default=True)
+@click.option("--data", "data_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="The schema file the models were trained on (as for `dks-gym train --data`).")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
-def calibrate(benchmark: str, model: str, preset: str, r: int, T: int, data_preset: str, progress: bool) -> None:
+def calibrate(benchmark: str | None, model: str, preset: str, r: int, T: int, data_preset: str,
+              data_file: Path | None, progress: bool) -> None:
     """Tune the process-noise scale of BENCHMARK's trained models (in $DKS_GYM_HOME/models) and store it.
 
     The scale of the calibrated Q that makes the EKF's 95 % intervals cover 95 % of the model's held-out
     frames (docs/filters.md). `dks-gym train` does it at the end of training; this command redoes it, for
     example for a checkpoint trained by an older dks-gym. The shipped models are tuned already."""
     from .assimilation import calibrate_process_noise
-    from .dataset import DatasetMissing, SchemaError, load_dataset
     from .models.checkpoint import CheckpointMissing, checkpoint_path
     from .models.lookup import load_model
 
-    benchmark = benchmark.lower()
-    try:
-        ds = load_dataset(benchmark, data_preset)
-    except (DatasetMissing, SchemaError) as exc:
-        raise click.ClickException(str(exc)) from exc
+    ds = _training_data(benchmark, data_preset, data_file)
     for kind in (list(MODEL_KINDS) if model == "all" else [model]):
-        path = checkpoint_path(benchmark, kind, preset, r, T, data_preset=data_preset)
+        path = checkpoint_path(ds.benchmark, kind, preset, r, T, data_preset=ds.preset or "custom")
         try:
-            latent = load_model(benchmark, kind, r=r, preset=preset, T=T, dataset=ds, path=path)
+            latent = load_model(ds.benchmark, kind, r=r, preset=preset, T=T, dataset=ds, path=path)
         except (CheckpointMissing, ValueError) as exc:
             raise click.ClickException(str(exc)) from exc
         scale = calibrate_process_noise(latent, ds, progress=progress)

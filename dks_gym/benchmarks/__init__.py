@@ -1,9 +1,10 @@
-"""The four benchmarks of the paper (SPEC section 1), looked up by name."""
+"""The four benchmarks of the paper (SPEC section 1), looked up by name, and custom benchmarks of your own flow."""
 
 from __future__ import annotations
 
 from .base import PRESETS, Benchmark, GeneratedData, GeneratorUnavailable, check_preset, interleaved_sweep
 from .burgers import BURGERS
+from .custom import CUSTOM_ENV_ID, CustomBenchmark
 from .cylinder import CYLINDER
 from .dambreak import DAMBREAK
 from .sphere import SPHERE
@@ -23,8 +24,10 @@ def get_benchmark(name: str | Benchmark) -> Benchmark:
 
 __all__ = [
     "BENCHMARKS",
+    "CUSTOM_ENV_ID",
     "PRESETS",
     "Benchmark",
+    "CustomBenchmark",
     "GeneratedData",
     "GeneratorUnavailable",
     "check_preset",

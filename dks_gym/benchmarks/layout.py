@@ -2,11 +2,14 @@
 
 :class:`CellGridBenchmark` is what the cylinder, dambreak and sphere share (cell-centre coordinates over
 a box, cell-type codes computed once, a paper layout made of named groups); the functions (equidistant
-cells, snapping, mirroring) are the pieces each benchmark module states its own layout rule with.
+cells, snapping, mirroring) are the pieces each benchmark module states its own layout rule with, and
+:func:`lattice_layout` is the rule of a custom benchmark's grid (equidistant over the fluid cells, any grid).
 """
 
 from __future__ import annotations
 
+import itertools
+import math
 from functools import cached_property
 from typing import ClassVar
 
@@ -132,3 +135,47 @@ def check_layout(bench: Benchmark, groups: dict[str, np.ndarray], m: int) -> Non
     flat = np.concatenate(list(groups.values()))
     if flat.size != m or np.unique(flat).size != m or not np.all(bench.fluid_mask().ravel()[flat]):
         raise AssertionError(f"{bench.name} layout rule produced an invalid layout for m={m}: {flat.tolist()}")
+
+
+def lattice_counts(grid: tuple[int, ...], m: int) -> tuple[int, ...]:
+    """Sensors per axis of :func:`lattice_layout`'s lattice: the counts c_i <= n_i whose product is the least one
+    >= ``m``; among those, the most even spacing (the smallest ratio of the largest n_i / c_i to the smallest),
+    then the larger counts on the earlier axes."""
+    best: tuple[tuple[float, ...], tuple[int, ...]] | None = None
+    for head in itertools.product(*(range(1, min(n, m) + 1) for n in grid[:-1])):
+        last = -(-m // math.prod(head))  # ceil
+        if last > grid[-1]:
+            continue
+        counts = (*head, last)
+        spacing = [n / c for n, c in zip(grid, counts)]
+        key = (math.prod(counts), max(spacing) / min(spacing), *(-c for c in counts))
+        if best is None or key < best[0]:
+            best = (key, counts)
+    if best is None:
+        raise ValueError(f"cannot place {m} sensors on the grid {grid}")
+    return best[1]
+
+
+def lattice_layout(fluid: np.ndarray, m: int) -> np.ndarray:
+    """``m`` sensors equidistant over the fluid cells of a grid of any dimension: flat (C-order) indices.
+
+    The rule (SPEC section 2's "equidistant" for any grid): along each axis, :func:`lattice_counts` cells
+    placed by :func:`equidistant_cells`; their product, in C order, is a lattice of at least ``m`` points, of
+    which ``m`` are kept, equidistant along that order (all of them when the product is ``m``). Each point
+    then goes to the nearest fluid cell not yet taken (distance in cells; ties to the lower flat index), so
+    on a grid without solid cells the sensors are the lattice points themselves. On a 1D grid of n cells
+    this is ``m`` equidistant cells, as the Burgers layout; on 64 x 64 cells, m = 16 is a 4 x 4 lattice.
+    """
+    fluid = np.asarray(fluid, dtype=bool)
+    n_fluid = int(fluid.sum())
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 1 <= m <= n_fluid:
+        raise ValueError(f"m (number of sensors) must be an integer from 1 to {n_fluid} (the fluid cells), got {m!r}")
+    grid = fluid.shape
+    axes = [equidistant_cells(0, n - 1, c) for n, c in zip(grid, lattice_counts(grid, int(m)))]
+    points = np.stack([a.reshape(-1) for a in np.meshgrid(*axes, indexing="ij")], axis=1)
+    if len(points) > m:
+        points = points[equidistant_cells(0, len(points) - 1, int(m))]
+    free = np.flatnonzero(fluid.reshape(-1))
+    chosen = snap_to_free_cells(points.astype(np.float64), np.stack(np.unravel_index(free, grid), axis=1), free,
+                                set())
+    return np.asarray(chosen, dtype=np.int64)

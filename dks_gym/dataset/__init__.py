@@ -4,7 +4,8 @@
   :class:`DataError`) and :func:`validate`, the check of an open file against it;
 * :mod:`.writer`: :func:`write_dataset` (a temporary file renamed into place when complete, under a lock)
   and :func:`generate_dataset` (a benchmark's generator run into the data home);
-* :mod:`.reader`: :class:`Dataset`, a validated file read lazily, and :func:`load_dataset`.
+* :mod:`.reader`: :class:`Dataset`, a validated file read lazily, :func:`load_dataset`, and
+  :func:`load_benchmark`, the benchmark a file describes (a custom one: your own flow, any grid).
 
 Files are written to a temporary name next to the target, under a lock (kept in ``$DKS_GYM_HOME/.locks``,
 see :mod:`dks_gym.locks`), and renamed into place only when complete, so a failed generation, Ctrl-C,
@@ -12,7 +13,7 @@ SIGTERM or SIGHUP never leaves a file that looks valid, nor a temporary one. Rea
 file or NaN/inf in a trajectory with :class:`DataError`, naming the file and what to do.
 """
 
-from .reader import Dataset, load_dataset, missing_message
+from .reader import Dataset, load_benchmark, load_dataset, missing_message
 from .schema import (
     AXES,
     REQUIRED_ATTRS,
@@ -35,6 +36,7 @@ __all__ = [
     "DatasetMissing",
     "SchemaError",
     "generate_dataset",
+    "load_benchmark",
     "load_dataset",
     "missing_message",
     "validate",

@@ -183,8 +183,18 @@ class Dataset:
         return "\n".join(lines)
 
 
-def load_dataset(benchmark: str, preset: str = "paper", path: str | Path | None = None) -> Dataset:
-    """Open a benchmark's dataset from the data home (or ``path``), with a clear error if it is missing."""
+def load_dataset(benchmark: str | Benchmark | None, preset: str = "paper", path: str | Path | None = None) -> Dataset:
+    """Open a benchmark's dataset from the data home (or ``path``), with a clear error if it is missing.
+
+    ``benchmark`` None takes whatever benchmark the file at ``path`` describes (a custom one included); a
+    benchmark (name or object) must be the file's."""
+    if benchmark is None:
+        if path is None:
+            raise ValueError("without a benchmark, name the file: data_path=... (a file in the dks-gym HDF5 schema)")
+        if not Path(path).exists():
+            raise DatasetMissing(f"no dataset file at {path}; write one in the dks-gym HDF5 schema (docs/envs.md, "
+                                 "\"Your own flow\")")
+        return Dataset(path)
     bench = get_benchmark(benchmark)
     check_preset(preset)
     path = Path(path) if path is not None else dataset_path(bench.name, preset)
@@ -194,6 +204,16 @@ def load_dataset(benchmark: str, preset: str = "paper", path: str | Path | None 
     if ds.benchmark.name != bench.name:
         raise SchemaError(f"{path} holds the {ds.benchmark.name} benchmark, not {bench.name}")
     return ds
+
+
+def load_benchmark(path: str | Path) -> Benchmark:
+    """The benchmark a schema file describes: one of the four paper benchmarks, or the
+    :class:`~dks_gym.benchmarks.CustomBenchmark` of your own flow (grid, channels, dt, parameter, cell types
+    and the default sensor layout, all from the file), validated like any dataset."""
+    if not Path(path).exists():
+        raise DatasetMissing(f"no dataset file at {path}")
+    with Dataset(path) as ds:
+        return ds.benchmark
 
 
 def missing_message(bench: Benchmark, preset: str, path: Path) -> str:

@@ -103,6 +103,11 @@ def _write(data: GeneratedData, bench: Benchmark, tmp: Path, extra_attrs: dict[s
         f.attrs["scored_channels"] = list(bench.scored_channels)
         f.attrs["param_name"] = bench.param_name
         f.attrs["dt"] = float(bench.dt)
+        # What a custom benchmark's file must say beyond its fields (schema.custom_benchmark reads them back).
+        f.attrs["param_range"] = np.asarray(bench.param_range, dtype=np.float64)
+        if bench.cell_type_codes:
+            f.attrs["cell_type_codes"] = json.dumps(bench.cell_type_codes, sort_keys=True)
+            f.attrs["solid_codes"] = np.asarray(bench.solid_codes, dtype=np.int64)
         f.attrs["generator"] = json.dumps(data.generator, sort_keys=True, default=_json_default)
         f.attrs["schema_version"] = SCHEMA_VERSION
         f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")

@@ -1,5 +1,9 @@
 """SensingEnv: noisy sparse sensors over a stored flow trajectory (Eq. 4, SPEC section 2).
 
+``benchmark`` names one of the four paper benchmarks (its data from the data home, or ``data_path``), or is
+None (``DKS/Custom-v0``): the benchmark the schema file at ``data_path`` describes, your own flow on any grid
+(:class:`~dks_gym.benchmarks.CustomBenchmark`), with the same sensing, noise, faults and rendering.
+
 One episode walks the frames of one trajectory of a dataset split. The observation is the m noisy sensor
 readings of the observed channel; the internal state is the true field ``env.unwrapped.true_state``
 (C x grid, physical units). The bare environment gives reward 0: estimation rewards come from the
@@ -79,7 +83,7 @@ class SensingEnv(gym.Env):
 
     def __init__(
         self,
-        benchmark: str | Benchmark,
+        benchmark: str | Benchmark | None = None,
         *,
         preset: str = "paper",
         data_path: str | None = None,
@@ -94,11 +98,13 @@ class SensingEnv(gym.Env):
         render_channel: str | None = None,
         parameter: str = "known",
     ) -> None:
-        self.benchmark = get_benchmark(benchmark)
+        named = None if benchmark is None else get_benchmark(benchmark)
         _check_settings(split, sensor_mode, noise_level, render_mode, parameter, self.metadata["render_modes"])
         self.parameter = parameter
         self.faults = SensorFaults.from_any(faults)
-        self.dataset: Dataset = load_dataset(self.benchmark.name, preset, data_path)
+        self.dataset: Dataset = load_dataset(named, preset, data_path)
+        # No benchmark named (DKS/Custom-v0): the one the file describes.
+        self.benchmark: Benchmark = self.dataset.benchmark if named is None else named
         _check_latency(self.faults, self.dataset.n_frames)
         self.split = split
         self.sensor_mode = sensor_mode

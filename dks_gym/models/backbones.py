@@ -46,14 +46,16 @@ def _fc_stack(widths: list[int]) -> nn.Sequential:
 
 
 def _bottleneck_grid(shape: BenchmarkShape, spec: BackboneSpec) -> tuple[int, ...]:
+    """Cells per axis after the stride-2 stages: ``ceil(n / 2**stages)`` (a grid that is not a multiple of
+    2**stages is padded up to one, see :func:`_grid_padding`)."""
     factor = _STRIDE ** len(spec.conv_channels)
-    for n in shape.grid:
-        if n % factor:
-            raise ValueError(
-                f"grid {shape.grid} is not divisible by {factor}, which {len(spec.conv_channels)} stride-2 "
-                "convolutions need"
-            )
-    return tuple(n // factor for n in shape.grid)
+    return tuple(-(-n // factor) for n in shape.grid)
+
+
+def _grid_padding(shape: BenchmarkShape, spec: BackboneSpec) -> tuple[int, ...]:
+    """Cells added at the upper end of each axis to reach a multiple of 2**stages (zero on the paper's grids)."""
+    factor = _STRIDE ** len(spec.conv_channels)
+    return tuple(b * factor - n for b, n in zip(_bottleneck_grid(shape, spec), shape.grid))
 
 
 def _fc_jacobian(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
@@ -93,9 +95,15 @@ class ConvEncoder(nn.Module):
         self.conv = nn.Sequential(*layers)
         n_flat = spec.conv_channels[-1] * math.prod(_bottleneck_grid(shape, spec))
         self.fc = _fc_stack([n_flat, *spec.fc_widths, r])
+        # torch's pad lists the last axis first: (0, pad_last, 0, pad_before_last, ...); None on the paper's grids
+        padding = _grid_padding(shape, spec)
+        self.padding = tuple(p for n in reversed(padding) for p in (0, n)) if any(padding) else None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, C_in, *grid) normalized input -> (B, r)."""
+        """(B, C_in, *grid) normalized input -> (B, r); a grid that is not a multiple of 2**stages is padded
+        with zeros (the channel means) at the upper end of each axis."""
+        if self.padding is not None:
+            x = nn.functional.pad(x, self.padding)
         return self.fc(self.conv(x).flatten(1))
 
 
@@ -116,6 +124,9 @@ class ConvDecoder(nn.Module):
         super().__init__()
         self.ndim = shape.ndim
         self.mode = spec.decoder_mode
+        self.grid = tuple(shape.grid)
+        # The padded grid's output is cropped to the grid (None on the paper's grids: nothing to crop).
+        self.crop = (..., *(slice(0, n) for n in shape.grid)) if any(_grid_padding(shape, spec)) else None
         self.bottleneck = (spec.conv_channels[-1], *_bottleneck_grid(shape, spec))
         self.fc = _fc_stack([r, *reversed(spec.fc_widths), math.prod(self.bottleneck)])
         deconv = _DECONV[shape.ndim]
@@ -133,8 +144,9 @@ class ConvDecoder(nn.Module):
         self._receptive_radius: int | None = None
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        """(B, r) -> (B, C_out, *grid) normalized output."""
-        return self.convolve(self.fc(z).view(z.shape[0], *self.bottleneck))
+        """(B, r) -> (B, C_out, *grid) normalized output (cropped from the padded grid where there is one)."""
+        out = self.convolve(self.fc(z).view(z.shape[0], *self.bottleneck))
+        return out if self.crop is None else out[self.crop].contiguous()  # contiguous as uncropped: callers view it
 
     def convolve(self, h: torch.Tensor) -> torch.Tensor:
         """The convolutional part: bottleneck features (B, C, *b) -> (B, C_out, *grid) for the whole grid, or
@@ -220,9 +232,9 @@ class ConvDecoder(nn.Module):
         n, m = cells.shape
         channels, *bottleneck = self.bottleneck
         factor = 2 ** len(self.deconv)
-        grid = tuple(b * factor for b in bottleneck)
         device = x.device
-        coords = torch.unravel_index(cells.to(device), grid)  # per axis (N, m)
+        # Grid coordinates are the same on the padded grid (its padding is at the upper ends).
+        coords = torch.unravel_index(cells.to(device), self.grid)  # per axis (N, m)
         starts = [(c // factor - self.receptive_radius).clamp(0, b - w) for c, b, w in zip(coords, bottleneck, window)]
         # Flat bottleneck indices of every window (channel-major, then the window cells in C order): (N, m, K).
         offsets = torch.meshgrid(*[torch.arange(w, device=device) for w in window], indexing="ij")

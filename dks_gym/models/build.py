@@ -55,7 +55,8 @@ def build_model(
     cell_type: ArrayLike | None = None,
     seed: int | None = 0,
 ) -> LatentModel:
-    """Build a latent model of ``benchmark`` (name or Benchmark): one of :data:`MODEL_KINDS`.
+    """Build a latent model of ``benchmark`` (name, Benchmark or its shape; a custom benchmark's name with its
+    ``dataset``): one of :data:`MODEL_KINDS`.
 
     ``preset`` is "paper" (the paper's architectures, exact parameter counts at r = 32) or "lite"
     (narrower, CPU-trainable). Pass ``dataset=ds`` to take the latent step, the train-split channel
@@ -65,7 +66,7 @@ def build_model(
     unfitted: call ``.fit(...)`` or ``.fit_dataset(ds)``. The model is in eval mode, as a loaded one is
     (the training loop switches to training mode and back).
     """
-    shape = benchmark_shape(benchmark)
+    shape = benchmark_shape(benchmark, dataset)
     if model not in MODEL_KINDS:
         raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODEL_KINDS)}")
     if preset not in MODEL_PRESETS:

@@ -37,13 +37,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..benchmarks import PRESETS
 from ..dataset import Dataset
 from ..atomic import atomic_path
 from ..home import data_home, ensure_writable
 from ..locks import file_lock
 from .build import build_model
 from .latent_model import LatentModel
-from .presets import MODEL_KINDS, MODEL_PRESETS, benchmark_shape
+from .presets import MODEL_KINDS, MODEL_PRESETS, BenchmarkShape, benchmark_shape
 
 FORMAT = "dks-gym-checkpoint"
 FORMAT_VERSION = 1
@@ -95,15 +96,20 @@ def check_model_args(model: str, preset: str, r: int, T: int) -> None:
         raise ValueError(f"training horizon T must be a positive integer, got {T!r}")
 
 
-def train_command(benchmark: str, model: str, preset: str, r: int, T: int, data_preset: str | None) -> str:
-    """The ``dks-gym train`` command line that produces this checkpoint."""
-    cmd = f"dks-gym train {benchmark} --model {model}"
+def train_command(benchmark: str, model: str, preset: str, r: int, T: int, data_preset: str | None,
+                  data_path: Path | str | None = None) -> str:
+    """The ``dks-gym train`` command line that produces this checkpoint: on the data home's preset file, or on
+    the file ``data_path`` where the data are no preset of the data home (a custom benchmark's, say)."""
+    if data_preset not in (None, *PRESETS) and data_path is not None:
+        cmd = f"dks-gym train --data {data_path} --model {model}"
+    else:
+        cmd = f"dks-gym train {benchmark} --model {model}"
     if model != "pdmd":
         cmd += f" --preset {preset}"
     cmd += f" --r {r}"
     if model != "pdmd":
         cmd += f" --T {T}"
-    if data_preset not in (None, "paper"):
+    if data_preset in PRESETS and data_preset != "paper":
         cmd += f" --data-preset {data_preset}"
     return cmd
 
@@ -143,6 +149,7 @@ def build_metadata(model: LatentModel, *, preset: str, T: int, dataset: Dataset,
         "r": model.r,
         "T": None if model.fitted_in_closed_form else int(T),
         "dt": model.dt,
+        "shape": model.shape.record(),  # what rebuilds the model without the benchmark (a custom one's file)
         "dataset": dataset_identity(dataset),
         "dks_gym_version": __version__,
         "torch_version": torch.__version__,
@@ -190,7 +197,7 @@ def check_metadata(
         stored = metadata.get("dataset", {})
         if stored.get("fingerprint") != ident["fingerprint"]:
             command = train_command(metadata["benchmark"], metadata["model"], metadata.get("preset") or "lite",
-                                    metadata["r"], metadata.get("T") or 1, ident["preset"])
+                                    metadata["r"], metadata.get("T") or 1, ident["preset"] or "custom", ident["path"])
             raise ValueError(
                 f"checkpoint {path} was trained on another dataset ({stored.get('path')}, preset "
                 f"{stored.get('preset')}, created {stored.get('created')}) than {ident['path']} (preset "
@@ -360,14 +367,16 @@ def model_from_checkpoint(checkpoint: Checkpoint | Path | str, device: str | tor
         "stats_mean": state["stats_mean"].numpy(),
         "stats_std": state["stats_std"].numpy(),
     }
+    # The stored shape where there is one (every checkpoint since custom benchmarks; the shipped files predate it).
+    benchmark = BenchmarkShape.from_record(meta["shape"]) if "shape" in meta else meta["benchmark"]
     if meta["model"] == "pdmd":
-        model = build_model(meta["benchmark"], "pdmd", r=meta["r"], **kwargs)
+        model = build_model(benchmark, "pdmd", r=meta["r"], **kwargs)
         model.pinv_rtol = meta.get("pdmd", {}).get("pinv_rtol")
         model.fit_info = meta.get("pdmd", {}).get("fit_info", {})
     else:
         if "cell_type" in state:
             kwargs["cell_type"] = state["cell_type"].numpy()
-        model = build_model(meta["benchmark"], meta["model"], r=meta["r"], preset=meta["preset"], seed=None, **kwargs)
+        model = build_model(benchmark, meta["model"], r=meta["r"], preset=meta["preset"], seed=None, **kwargs)
     model.load_state_dict(state)
     model.calibration = dict(checkpoint.calibration)
     model.checkpoint_path = Path(checkpoint.path)  # where a later calibration step (the Q scale) is kept

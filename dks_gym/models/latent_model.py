@@ -259,7 +259,7 @@ class NeuralLatentModel(LatentModel):
         super().__init__(shape, r, dt=dt, stats_mean=stats_mean, stats_std=stats_std)
         self.kind = kind
         self.preset = preset
-        spec = backbone_spec(shape.name, preset)
+        spec = backbone_spec(shape, preset)
         embedding = ParameterEmbedding(self.r, shape.param_range, EMBEDDING_HIDDEN_LAYERS)
         self.encoder = ParametricEncoder(ConvEncoder(shape, spec, self.r), embedding)
         self.decoder = ConvDecoder(shape, spec, self.r)

@@ -34,7 +34,7 @@ from .training import resolve_device, train_model
 logger = logging.getLogger(__name__)
 
 
-def is_stale(meta: dict[str, Any], benchmark: str, model: str, preset: str) -> bool:
+def is_stale(meta: dict[str, Any], benchmark: Any, model: str, preset: str) -> bool:
     """Whether a finished checkpoint (its ``meta``) was trained with another schedule than ``preset``'s current
     one (an older dks-gym, custom steps): :func:`load_model` retrains such a cached checkpoint."""
     return (bool(meta.get("complete")) and model != "pdmd"
@@ -58,19 +58,20 @@ def locate_model(benchmark: Any, model: str, r: int = 32, preset: str = "lite", 
     """The lookup of :func:`load_model`, without loading or training: the user's own complete checkpoint
     (``path``, or the data home's), else the shipped model when ``dataset`` matches its training data.
     Raises ValueError for a checkpoint of another benchmark, r, preset, T or dataset."""
-    name = benchmark_shape(benchmark).name
+    shape = benchmark_shape(benchmark, dataset)
+    name = shape.name
     check_model_args(model, preset, r, T)
     if dataset is not None and dataset.benchmark.name != name:
         raise ValueError(f"dataset {dataset.path} is for {dataset.benchmark.name}, not {name}")
     data_preset = (dataset.preset or "custom") if dataset is not None else data_preset
     cached = path is None  # the data home's checkpoint must follow the preset; an explicit path is taken as is
-    path = Path(path) if path is not None else checkpoint_path(name, model, preset, r, T, data_preset=data_preset)
-    command = train_command(name, model, preset, r, T, data_preset)
+    path = Path(path) if path is not None else checkpoint_path(shape, model, preset, r, T, data_preset=data_preset)
+    command = train_command(name, model, preset, r, T, data_preset, None if dataset is None else dataset.path)
     stale = False
     if path.exists():
         meta = read_metadata(path)
-        check_metadata(meta, path, benchmark=name, model=model, r=r, preset=preset, T=T, dataset=dataset)
-        stale = cached and is_stale(meta, name, model, preset)
+        check_metadata(meta, path, benchmark=shape, model=model, r=r, preset=preset, T=T, dataset=dataset)
+        stale = cached and is_stale(meta, shape, model, preset)
         if meta.get("complete") and not stale:
             return ModelLookup(path, path, "", command, False)
         if stale:  # trained by an older dks-gym, or with other settings than the preset's
@@ -118,8 +119,9 @@ def load_model(
     for another benchmark, r, preset or T, or trained on another dataset than ``dataset``, raises
     ValueError. Nothing is written unless ``train_if_missing`` trains.
     """
-    name = benchmark_shape(benchmark).name
-    lookup = locate_model(name, model, r, preset, T, dataset=dataset, data_preset=data_preset, path=path)
+    shape = benchmark_shape(benchmark, dataset)
+    name = shape.name
+    lookup = locate_model(shape, model, r, preset, T, dataset=dataset, data_preset=data_preset, path=path)
     if lookup.found is not None:
         return model_from_checkpoint(lookup.found, resolve_device(device))
     data_preset = (dataset.preset or "custom") if dataset is not None else data_preset
@@ -133,7 +135,7 @@ def load_model(
             "resuming its unfinished training" if path.exists() else "training it on first use")
     logger.info("%s %s model (%s, r=%d, T=%d): %s, as `%s` would; it is kept at %s for later runs",
                 name, model, preset, r, T, what, command, path)
-    result = train_model(name, model, r, preset, T, dataset=dataset, data_preset=data_preset, device=device,
+    result = train_model(shape, model, r, preset, T, dataset=dataset, data_preset=data_preset, device=device,
                          path=path, progress=progress, resume=not stale)
     return result.model
 

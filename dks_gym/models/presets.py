@@ -1,4 +1,5 @@
-"""Architecture presets: the paper's encoder/decoder tables (``paper``) and narrow CPU versions (``lite``).
+"""Architecture presets: the paper's encoder/decoder tables (``paper``) and narrow CPU versions (``lite``), and
+the rule that sizes the same structure for any other grid (:func:`sized_backbone`).
 
 The ``paper`` specs transcribe the architecture tables of the paper (Burgers, cylinder, sphere; the
 dambreak uses the cylinder structure with six input and five output channels). Built as specified they
@@ -9,13 +10,19 @@ layers, and divide the convolution widths by 4 (1D) or 16 (2D, 3D) and the fully
 batch 32 in 2D, 2 s at batch 4 on the sphere, measured on a loaded 2-core machine).
 
 The benchmark constants the models need (grid, channels, latent step, parameter range) come from the
-benchmark registry (SPEC section 1) through :func:`benchmark_shape`, so models can be built (and counted)
-without data.
+benchmark registry (SPEC section 1) or a benchmark object (a custom one, from its schema file) through
+:func:`benchmark_shape`, so models can be built (and counted) without data.
+
+A benchmark without a table of the paper (a custom one, :class:`~dks_gym.benchmarks.CustomBenchmark`) gets
+its encoder and decoder from :func:`sized_backbone`, a stated rule; the four keep their tables exactly.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
+from typing import Any
 
 from ..benchmarks import BENCHMARKS, Benchmark
 from ..names import MODEL_KINDS  # noqa: F401 - re-exported: the one list of model kinds, for models/
@@ -47,6 +54,20 @@ class BenchmarkShape:
     @property
     def out_channels(self) -> int:
         return self.n_fields + int(self.reconstructs_cell_type)
+
+    def record(self) -> dict[str, Any]:
+        """The shape as JSON-ready checkpoint metadata: a checkpoint rebuilds its model from it, without the
+        benchmark's registry entry or its data (a custom benchmark has neither)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_record(cls, record: dict[str, Any]) -> "BenchmarkShape":
+        """The shape :meth:`record` wrote (JSON turns its tuples into lists; they are turned back)."""
+        values = {f.name: record[f.name] for f in dataclasses.fields(cls) if f.name in record}
+        for name in ("grid", "param_range", "channels"):
+            if name in values:
+                values[name] = tuple(values[name])
+        return cls(**values)
 
 
 # Per the paper's architecture tables only the sphere decoder also outputs the cell type (5 channels).
@@ -133,19 +154,76 @@ PAPER_LATENT_PARAM_COUNTS: dict[str, int] = {"mlp": 43_607, "koopman": 43_296}
 PAPER_XLSTM_PARAM_COUNT_UNREACHABLE = 43_104
 
 
-def benchmark_shape(benchmark: object) -> BenchmarkShape:
-    """Return the :class:`BenchmarkShape` of a benchmark given by name or by a ``Benchmark`` object."""
+#: The sizing rule's bottleneck: at most this many cells in all (the paper's: 128 in 1D, 8 x 8 in 2D, 4^3 in 3D).
+MAX_BOTTLENECK_CELLS = 128
+#: The fewest stride-2 stages the rule uses (the paper's tables have three or four).
+MIN_STAGES = 3
+#: Per preset: the first convolution width per input channel, and the widest convolution.
+_WIDTH_PER_CHANNEL = {"lite": 2, "paper": 8}
+_MAX_WIDTH = {"lite": 64, "paper": 512}
+#: Per preset and number of axes: the table whose kernel, padding, activations, decoder and dense widths the rule
+#: keeps.
+_TABLE_OF_NDIM = {"paper": {1: _PAPER_1D, 2: _PAPER_2D, 3: _PAPER_3D}, "lite": {1: _LITE_1D, 2: _LITE_2D, 3: _LITE_3D}}
+
+
+def stride_stages(grid: tuple[int, ...]) -> int:
+    """The rule's number of stride-2 stages: the fewest, at least :data:`MIN_STAGES`, after which the bottleneck
+    (``ceil(n / 2**stages)`` cells per axis) has at most :data:`MAX_BOTTLENECK_CELLS` cells. On the paper's grids
+    it gives the paper's counts: 3 on 1024 (128 cells), 3 on 64 x 64 (8 x 8), 4 on 64^3 (4^3)."""
+    stages = MIN_STAGES
+    while math.prod(-(-n // 2**stages) for n in grid) > MAX_BOTTLENECK_CELLS:
+        stages += 1
+    return stages
+
+
+def sized_backbone(shape: BenchmarkShape, preset: str = "lite") -> BackboneSpec:
+    """The encoder/decoder of a benchmark without a table of the paper, sized from its grid and channels.
+
+    The rule keeps the paper's structure (strided convolutions, a dense bottleneck, a decoder that mirrors them):
+
+    * stages: :func:`stride_stages` of the grid (3 for most grids; more until the bottleneck has at most 128
+      cells);
+    * convolution widths: stage s has w 2^s channels, w = 2 (lite) or 8 (paper) per encoder input channel
+      (fields plus the cell type), at most 64 (lite) or 512 (paper). On Burgers' one channel this is the 1D
+      tables (lite 2-4-8, paper 8-16-32); on the cylinder's four inputs the lite 2D table (8-16-32);
+    * everything else from the table of the same dimension and preset: kernel 3 (1D, 3D) or 5 (2D), the
+      decoder's upsampling (1D, 2D) or strided transposed convolutions (3D), dense widths 512-256 (lite
+      128-64) in 1D and 2D, 1024 (lite 128) in 3D.
+
+    A grid that is not a multiple of 2^stages along an axis is padded at that axis's upper end to the next
+    multiple (zeros, in normalized units: the channel's mean) before the encoder, and the decoder's output
+    is cropped back to the grid (:mod:`dks_gym.models.backbones`).
+    """
+    if preset not in MODEL_PRESETS:
+        raise ValueError(f"unknown model preset {preset!r}; choose one of {', '.join(MODEL_PRESETS)}")
+    base = _WIDTH_PER_CHANNEL[preset] * shape.in_channels
+    widths = tuple(min(base * 2**s, _MAX_WIDTH[preset]) for s in range(stride_stages(shape.grid)))
+    return dataclasses.replace(_TABLE_OF_NDIM[preset][shape.ndim], conv_channels=widths)
+
+
+def benchmark_shape(benchmark: object, dataset: Any = None) -> BenchmarkShape:
+    """Return the :class:`BenchmarkShape` of a benchmark given by name, by a ``Benchmark`` object (a custom one
+    too) or as a shape (returned as it is). With a ``dataset`` (a :class:`~dks_gym.dataset.Dataset`), the name
+    of its benchmark resolves through it: a custom benchmark by name."""
+    if dataset is not None and isinstance(benchmark, str) and benchmark.lower() == dataset.benchmark.name:
+        benchmark = dataset.benchmark
+    if isinstance(benchmark, BenchmarkShape):
+        return benchmark
     if isinstance(benchmark, Benchmark):
         return _shape_of(benchmark)
     name = getattr(benchmark, "name", benchmark)
     key = str(name).lower()
     if key not in BENCHMARK_SHAPES:
-        raise ValueError(f"unknown benchmark {name!r}; choose one of {', '.join(BENCHMARK_SHAPES)}")
+        raise ValueError(f"unknown benchmark {name!r}; choose one of {', '.join(BENCHMARK_SHAPES)}, or pass the "
+                         "benchmark object of a custom one (dks_gym.dataset.load_benchmark(path))")
     return BENCHMARK_SHAPES[key]
 
 
 def backbone_spec(benchmark: object, preset: str = "paper") -> BackboneSpec:
-    """Return the encoder/decoder spec of ``benchmark`` in ``preset`` ("paper" or "lite")."""
+    """Return the encoder/decoder spec of ``benchmark`` in ``preset`` ("paper" or "lite"): the paper's table
+    (:data:`BACKBONES`) for the four benchmarks, :func:`sized_backbone` for any other."""
     if preset not in MODEL_PRESETS:
         raise ValueError(f"unknown model preset {preset!r}; choose one of {', '.join(MODEL_PRESETS)}")
-    return BACKBONES[preset][benchmark_shape(benchmark).name]
+    shape = benchmark_shape(benchmark)
+    table = BACKBONES[preset].get(shape.name)
+    return table if table is not None else sized_backbone(shape, preset)

@@ -61,13 +61,13 @@ class TrainingState:
         return int(ckpt.metadata["steps_done"])
 
 
-def check_resumable(meta: dict[str, Any], path: Path, name: str, model: str, preset: str, r: int, T: int,
+def check_resumable(meta: dict[str, Any], path: Path, benchmark: Any, model: str, preset: str, r: int, T: int,
                     dataset: Dataset, settings: dict[str, Any], schedule: TrainingSchedule | None = None) -> None:
     """Refuse (ValueError) to resume the checkpoint with metadata ``meta`` for another model or dataset, or with
     other ``settings`` (batch size, lr, seed, schedule) than it was trained with. A longer ``schedule`` that
     :meth:`~dks_gym.models.schedule.TrainingSchedule.extends` the stored one may continue it (more steps of a
     constant-rate run, e.g. the paper preset's, in stages)."""
-    check_metadata(meta, path, benchmark=name, model=model, r=r, preset=preset, T=T, dataset=dataset)
+    check_metadata(meta, path, benchmark=benchmark, model=model, r=r, preset=preset, T=T, dataset=dataset)
     for key, value in settings.items():
         if meta.get(key) == value or (key == "schedule" and schedule is not None
                                       and isinstance(meta.get(key), dict) and schedule.extends(meta[key])):

@@ -124,14 +124,22 @@ TRAINING_SCHEDULES: dict[str, dict[str, TrainingSchedule]] = {
 }
 
 
+#: A benchmark without a schedule of its own (a custom one) trains with the schedule of the paper benchmark
+#: with as many axes: the lite ones are sized by epochs of the training windows, so they fit any data size.
+SCHEDULE_OF_NDIM = {1: "burgers", 2: "cylinder", 3: "sphere"}
+
+
 def training_schedule(benchmark: Any, preset: str, *, steps: int | None = None, batch_size: int | None = None,
                       lr: float | None = None) -> TrainingSchedule:
     """The schedule of ``benchmark`` for the ``preset`` ("paper" or "lite"), with ``steps``, ``batch_size`` or
     ``lr`` in place of the preset's where given. An explicit step count trains exactly that many steps: it
-    replaces the preset's epochs and early stopping (its learning-rate schedule and validation stay)."""
+    replaces the preset's epochs and early stopping (its learning-rate schedule and validation stay). A custom
+    benchmark takes the schedule of :data:`SCHEDULE_OF_NDIM`."""
     if preset not in TRAINING_SCHEDULES:
         raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(TRAINING_SCHEDULES)}")
-    schedule = TRAINING_SCHEDULES[preset][benchmark_shape(benchmark).name]
+    shape = benchmark_shape(benchmark)
+    table = TRAINING_SCHEDULES[preset]
+    schedule = table.get(shape.name) or table[SCHEDULE_OF_NDIM[shape.ndim]]
     if steps is not None:
         schedule = dataclasses.replace(schedule, steps=int(steps), epochs=None, patience=0)
     if batch_size is not None or lr is not None:
@@ -140,4 +148,4 @@ def training_schedule(benchmark: Any, preset: str, *, steps: int | None = None, 
     return schedule
 
 
-__all__ = ["LEARNING_RATE", "TRAINING_SCHEDULES", "TrainingSchedule", "training_schedule"]
+__all__ = ["LEARNING_RATE", "SCHEDULE_OF_NDIM", "TRAINING_SCHEDULES", "TrainingSchedule", "training_schedule"]

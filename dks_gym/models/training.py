@@ -42,7 +42,7 @@ from .checkpoint import (
 from .latent_model import LatentModel, NeuralLatentModel
 from .loss import LOSS_TERMS, training_loss
 from .loss_curves import write_loss_curves
-from .presets import benchmark_shape
+from .presets import BenchmarkShape, benchmark_shape
 from .resume import TrainingState, check_resumable
 from .schedule import TrainingSchedule, training_schedule
 from .validation import ValidationMonitor, validation_trajectories
@@ -79,7 +79,7 @@ class TrainingResult:
 class TrainingPlan:
     """What one run trains, on what data, where, and how: fixed before its first step."""
 
-    name: str  # the benchmark
+    benchmark: BenchmarkShape
     model: str
     r: int
     preset: str
@@ -91,6 +91,11 @@ class TrainingPlan:
     device: torch.device
     held_out: list[int]  # the validation trajectories (empty without a validation split)
     checkpoint_every: int
+
+    @property
+    def name(self) -> str:
+        """The benchmark's name."""
+        return self.benchmark.name
 
     @property
     def label(self) -> str:
@@ -123,7 +128,7 @@ class TrainingRun:
             steps=plan.schedule.steps, batch_size=plan.schedule.batch_size, lr=plan.schedule.lr, seed=plan.seed,
             complete=done >= plan.schedule.steps or stopped, device=str(plan.device), loss_terms=list(LOSS_TERMS),
             train_time_s=self.elapsed_before + time.perf_counter() - self.loop_start,
-            schedule=plan.schedule.record(), preset_schedule=training_schedule(plan.name, plan.preset).record(),
+            schedule=plan.schedule.record(), preset_schedule=training_schedule(plan.benchmark, plan.preset).record(),
             validation_trajectories=plan.held_out, stopped_early=stopped,
             calibrated_on="validation" if plan.held_out else "train",
             best_step=monitor.best_step if monitor is not None else None,
@@ -225,7 +230,8 @@ def train_model(
     data_preset)``; ``path`` to :func:`checkpoint_path`. ``checkpoint_every`` defaults to a tenth of the
     steps (at most 1000). ``on_step(step, terms)`` is called after every optimizer step.
     """
-    name = benchmark_shape(benchmark).name
+    shape = benchmark_shape(benchmark, dataset)
+    name = shape.name
     check_model_args(model, preset, r, T)
     device = resolve_device(device)
     if dataset is None:
@@ -235,19 +241,19 @@ def train_model(
     if dataset.benchmark.name != name:
         raise ValueError(f"dataset {dataset.path} is for {dataset.benchmark.name}, not {name}")
     if path is None:
-        path = checkpoint_path(name, model, preset, r, T, data_preset=dataset.preset or "custom")
+        path = checkpoint_path(shape, model, preset, r, T, data_preset=dataset.preset or "custom")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     start_time = time.perf_counter()
     with file_lock(path, "train"):  # concurrent trainers of one checkpoint wait instead of racing
         if model == "pdmd":
-            return _fit_pdmd(name, r, dataset, path, seed, device, resume, start_time)
-        plan = plan_training(name, model, r, preset, T, dataset=dataset, path=path, schedule=schedule, seed=seed,
+            return _fit_pdmd(shape, r, dataset, path, seed, device, resume, start_time)
+        plan = plan_training(shape, model, r, preset, T, dataset=dataset, path=path, schedule=schedule, seed=seed,
                              device=device, checkpoint_every=checkpoint_every)
         previous = None
         if resume and path.exists():
             previous = read_metadata(path)
-            check_resumable(previous, path, name, model, preset, r, T, dataset, plan.settings(), plan.schedule)
+            check_resumable(previous, path, shape, model, preset, r, T, dataset, plan.settings(), plan.schedule)
             if previous["steps_done"] >= plan.schedule.steps or previous.get("stopped_early"):
                 return _load_finished(plan, previous, start_time)  # done: load without the data
         run = set_up_training(plan, previous, in_memory=in_memory, progress=progress)
@@ -260,19 +266,21 @@ def train_model(
         return finish_training(run, done, start_time)
 
 
-def plan_training(name: str, model: str, r: int, preset: str, T: int, *, dataset: Dataset, path: Path,
+def plan_training(benchmark: Any, model: str, r: int, preset: str, T: int, *, dataset: Dataset, path: Path,
                   schedule: TrainingSchedule | None, seed: int, device: torch.device,
                   checkpoint_every: int | None) -> TrainingPlan:
     """The plan of a run: the schedule (the preset's unless given) checked and resolved for the training
-    windows left after the validation split, and the checkpoint interval."""
-    schedule = training_schedule(name, preset) if schedule is None else schedule
+    windows left after the validation split, and the checkpoint interval. ``benchmark``: a name, a benchmark
+    object or its shape."""
+    shape = benchmark_shape(benchmark, dataset)
+    schedule = training_schedule(shape, preset) if schedule is None else schedule
     schedule.check()
     n_train = dataset.n_trajectories("train")
     held_out = validation_trajectories(n_train, schedule.validation_fraction, seed)
     schedule = schedule.resolve((n_train - len(held_out)) * (dataset.n_frames - T))
     if checkpoint_every is None:
         checkpoint_every = max(1, min(1000, schedule.steps // 10))
-    return TrainingPlan(name, model, r, preset, T, dataset, path, schedule, seed, device, held_out, checkpoint_every)
+    return TrainingPlan(shape, model, r, preset, T, dataset, path, schedule, seed, device, held_out, checkpoint_every)
 
 
 def set_up_training(plan: TrainingPlan, previous: dict[str, Any] | None, *, in_memory: bool | None,
@@ -280,7 +288,7 @@ def set_up_training(plan: TrainingPlan, previous: dict[str, Any] | None, *, in_m
     """Build the model, Adam, the batch sampler and the validation monitor of ``plan``; restore them from its
     checkpoint when ``previous`` (its metadata) says the run is resumed."""
     schedule, held_out = plan.schedule, plan.held_out
-    net = build_model(plan.name, plan.model, plan.r, plan.preset, dataset=plan.dataset, seed=plan.seed)
+    net = build_model(plan.benchmark, plan.model, plan.r, plan.preset, dataset=plan.dataset, seed=plan.seed)
     net = net.to(plan.device)
     optimizer = torch.optim.Adam(net.parameters(), lr=schedule.lr)
     fitted = [i for i in range(plan.dataset.n_trajectories("train")) if i not in held_out] if held_out else None
@@ -329,12 +337,12 @@ def _load_finished(plan: TrainingPlan, previous: dict[str, Any], start_time: flo
                           stopped_early=bool(previous.get("stopped_early")))
 
 
-def _fit_pdmd(name: str, r: int, dataset: Dataset, path: Path, seed: int, device: torch.device, resume: bool,
-              start_time: float) -> TrainingResult:
+def _fit_pdmd(shape: BenchmarkShape, r: int, dataset: Dataset, path: Path, seed: int, device: torch.device,
+              resume: bool, start_time: float) -> TrainingResult:
     """pDMD's "training": its closed-form fit on every training trajectory (or the fitted checkpoint, loaded)."""
     if resume and path.exists():
         ckpt = read_checkpoint(path, optimizer=False, training=False)
-        check_metadata(ckpt.metadata, path, benchmark=name, model="pdmd", r=r, dataset=dataset)
+        check_metadata(ckpt.metadata, path, benchmark=shape, model="pdmd", r=r, dataset=dataset)
         if ckpt.metadata.get("seed") != seed:
             raise ValueError(
                 f"checkpoint {path} was fitted with seed {ckpt.metadata.get('seed')}, not {seed}; "
@@ -343,7 +351,7 @@ def _fit_pdmd(name: str, r: int, dataset: Dataset, path: Path, seed: int, device
         model = model_from_checkpoint(ckpt, device)
         return TrainingResult(model, path, 0, 0, time.perf_counter() - start_time, np.zeros((0, 4), np.float32),
                               loaded_only=True)
-    model = build_model(name, "pdmd", r, dataset=dataset).to(device)
+    model = build_model(shape, "pdmd", r, dataset=dataset).to(device)
     model.fit_dataset(dataset, seed=seed)
     # pDMD has no validation split (its fit is closed-form on every training trajectory): calibrated in-sample.
     model.calibration = calibrate(model, dataset, range(dataset.n_trajectories("train")))
