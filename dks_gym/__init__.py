@@ -1,7 +1,8 @@
 """dks-gym: Gymnasium environments for sparse flow sensing from the paper *Deep Koopman Sensing*.
 
-``import dks_gym`` registers ``DKS/Burgers-v0``, ``DKS/Cylinder-v0``, ``DKS/Dambreak-v0`` and ``DKS/Sphere-v0``
-(by string entry points: it imports neither torch nor the filter stack). ``LatentFilter``, ``FilterConfig``,
+``import dks_gym`` registers ``DKS/Burgers-v0``, ``DKS/Cylinder-v0``, ``DKS/Dambreak-v0``, ``DKS/Sphere-v0`` and
+``DKS/Custom-v0`` (your own flow, from a schema file: ``data_path=...``) by string entry points: it imports
+neither torch nor the filter stack. ``LatentFilter``, ``FilterConfig``,
 ``load_model`` and ``ModelSpec`` are imported on first use; ``set_threads`` sets the torch CPU threads of dks-gym's
 training and filtering (default 1: see :mod:`dks_gym.threads`).
 """
