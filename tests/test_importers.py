@@ -228,7 +228,7 @@ def test_pdebench_layout_splits_like_pdebench_or_by_file(pdebench, tmp_path: Pat
         assert np.isclose(f.attrs["dt"], 0.01, rtol=1e-6) and tuple(f.attrs["channels"]) == ("u",)
     _assert_stats(got, got["train/fields"])
 
-    got = _datasets(import_pdebench(paths[:1], tmp_path / "b.h5", test=paths[1:], max_per_file=3))
+    got = _datasets(import_pdebench(paths, tmp_path / "b.h5", test=paths[1:], max_per_file=3))  # each file once
     np.testing.assert_array_equal(got["train/fields"][:, :, 0], u[0][:3])
     np.testing.assert_array_equal(got["test/fields"][:, :, 0], u[1][:3])
     np.testing.assert_array_equal(got["test/params"], [0.01] * 3)

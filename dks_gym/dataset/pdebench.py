@@ -108,7 +108,11 @@ def read_pdebench(files: Sequence[str | Path], *, test: Sequence[str | Path] = (
     if max_per_file is not None and max_per_file < 1:
         raise ValueError(f"max_per_file must be at least 1, got {max_per_file}")
     held = {p.resolve() for p in test_paths}
-    paths = list(dict.fromkeys([*map(Path, files), *test_paths]))
+    # Each file once (a test file may be among ``files`` too, under another spelling of its path).
+    unique: dict[Path, Path] = {}
+    for path in [*map(Path, files), *test_paths]:
+        unique.setdefault(path.resolve(), path)
+    paths = list(unique.values())
     if not paths:
         raise ValueError("no PDEBench files given")
     described = []
