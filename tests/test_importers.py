@@ -267,6 +267,11 @@ def test_pdebench_name_and_split_errors(pdebench, tmp_path: Path) -> None:
         import_pdebench([paths[0], renamed], tmp_path / "x.h5")
     with pytest.raises(LayoutError, match="no test trajectories"):
         import_pdebench(paths[:1], tmp_path / "x.h5", max_per_file=5)  # int(5 * 0.1) = 0
+    from dks_gym.dataset.importing import parameter_range
+
+    assert parameter_range({"train": np.array([0.001, 0.001]), "test": np.array([0.001])}) == (0.0005, 0.0015)
+    assert parameter_range({"train": np.array([0.0]), "test": np.array([0.0])}) == (-0.5, 0.5)
+    assert parameter_range({"train": np.array([2.0, 1.0]), "test": np.array([3.0])}) == (1.0, 3.0)
     with pytest.raises(ValueError, match="either whole files"):
         import_pdebench(paths[:1], tmp_path / "x.h5", test=[renamed], test_fraction=0.2)
     assert not (tmp_path / "x.h5").exists()

@@ -101,22 +101,35 @@ def target_benchmark(flow: ImportedFlow, observed: str | None = None) -> tuple[B
     A paper benchmark's name binds the flow to that benchmark (grid, channels, dt and cell types checked);
     any other name makes a custom benchmark: the flow's channels in their order, ``observed`` (default the
     first channel) observed, every channel scored, dt from the time axis, the parameter range spanned by the
-    trajectories."""
+    trajectories (:func:`parameter_range`)."""
     if flow.name in BENCHMARKS:
         return _paper_benchmark(flow, BENCHMARKS[flow.name], observed)
     channels = tuple(flow.channels)
     observed = channels[0] if observed is None else observed
     if observed not in channels:
         raise ValueError(f"the observed channel {observed!r} is not one of the imported channels {list(channels)}")
-    values = np.concatenate([np.asarray(v, dtype=np.float64) for v in flow.params.values()])
     bench = Benchmark(
         name=flow.name, env_id=CUSTOM_ENV_ID, grid=flow.grid, channels=channels, observed_channel=observed,
-        scored_channels=channels, param_name=flow.param_name,
-        param_range=(float(values.min()), float(values.max())), dt=flow.dt, n_frames=len(flow.time),
+        scored_channels=channels, param_name=flow.param_name, param_range=parameter_range(flow.params),
+        dt=flow.dt, n_frames=len(flow.time),
         n_train=len(flow.params["train"]), n_test=len(flow.params["test"]),
         cell_type_codes=dict(flow.cell_type_codes), solid_codes=tuple(flow.solid_codes),
     )
     return bench, list(range(len(channels)))
+
+
+def parameter_range(params: dict[str, np.ndarray]) -> tuple[float, float]:
+    """The range the trajectories' parameters span; around a single value v, v -+ |v| / 2 (-+ 1/2 for 0).
+
+    A flow whose trajectories all share one value (one PDEBench file, one file of The Well) still needs
+    low < high: the models map the range onto [-1, 1]. The parameter then carries no information, and the
+    range only keeps that map defined (positive for a positive value, so a logarithmic scale stays valid)."""
+    values = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in params.values()])
+    low, high = float(values.min()), float(values.max())
+    if high > low:
+        return low, high
+    half = abs(low) / 2 if low != 0 else 0.5
+    return low - half, low + half
 
 
 def _paper_benchmark(flow: ImportedFlow, bench: Benchmark, observed: str | None) -> tuple[Benchmark, list[int]]:
