@@ -11,6 +11,7 @@ and that one never takes the target's name.
 from __future__ import annotations
 
 import os
+import shutil
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -26,7 +27,7 @@ def temporary_name(target: str | Path, suffix: str = "") -> Path:
 
 
 @contextmanager
-def atomic_path(target: str | Path, suffix: str = "") -> Iterator[Path]:
+def atomic_path(target: str | Path, suffix: str = "", *, directory: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``target`` to write; on success move it onto ``target`` atomically.
 
     The body writes the file at the yielded path (with any library: h5py, numpy, safetensors, plain
@@ -36,19 +37,29 @@ def atomic_path(target: str | Path, suffix: str = "") -> Iterator[Path]:
     body runs they raise :class:`~dks_gym.interrupt.Terminated` (exit status 128 + signal number), when
     their handler is the default one (:func:`~dks_gym.interrupt.exit_on_signals`). ``suffix`` ends the
     temporary name, for writers that insist on an extension (``np.savez`` appends ``.npz`` otherwise).
+
+    With ``directory=True`` the yielded path is a fresh, empty folder that the body fills (a set of files
+    that is only usable whole, e.g. an export in another collection's layout); every file in it is fsynced
+    and the folder renamed onto ``target``, which must not exist or be an empty folder.
     """
     target = Path(target)
     with exit_on_signals():
         tmp = temporary_name(target, suffix)
         try:
+            if directory:
+                tmp.mkdir()
             yield tmp
             # Data first, then the rename: after a power cut the target holds the old or the new file, never
             # a renamed but empty one.
-            with open(tmp, "rb") as f:
-                os.fsync(f.fileno())
+            for path in sorted(p for p in tmp.rglob("*") if p.is_file()) if directory else [tmp]:
+                with open(path, "rb") as f:
+                    os.fsync(f.fileno())
             os.replace(tmp, target)
         finally:
-            tmp.unlink(missing_ok=True)
+            if directory:
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                tmp.unlink(missing_ok=True)
 
 
 def atomic_write_text(target: str | Path, text: str) -> Path:

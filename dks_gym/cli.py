@@ -96,7 +96,7 @@ def main(threads: int | None) -> None:
 
 @main.group()
 def data() -> None:
-    """Generate and inspect benchmark datasets."""
+    """Generate, import and inspect benchmark datasets."""
 
 
 @data.command("generate")
@@ -169,6 +169,73 @@ def data_info(file: Path) -> None:
     except SchemaError as exc:
         click.echo(f"invalid dataset: {exc}", err=True)
         sys.exit(1)
+
+
+@data.group("import")
+def data_import() -> None:
+    """Convert another collection's files into one dks-gym schema file (docs/envs.md, "Your own flow")."""
+
+
+def _imported(run: Any, out: Path) -> None:
+    """Run an import, turning its errors into clean messages, and say what was written."""
+    import h5py
+
+    from .dataset.importing import LayoutError
+    from .home import DataHomeError
+
+    try:
+        run()
+    except (LayoutError, ValueError, FileExistsError, RuntimeError, DataHomeError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    with h5py.File(out, "r") as f:
+        counts = ", ".join(f"{f[s]['params'].shape[0]} {s}" for s in ("train", "test"))
+        click.echo(f"imported {counts} trajectories of {f.attrs['benchmark']} (channels "
+                   f"{', '.join(f.attrs['channels'])}, grid {' x '.join(map(str, f['train/fields'].shape[3:]))}, "
+                   f"dt {f.attrs['dt']:g}) -> {out}; `dks-gym data info {out}` describes it")
+
+
+@data_import.command("the-well")
+@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="The schema file to write.")
+@click.option("--param", default=None, help="The simulation parameter to keep (default: the one that varies).")
+@click.option("--valid", type=click.Choice(["train", "drop"]), default="train", show_default=True,
+              help="Append The Well's valid split to train, or drop it.")
+@click.option("--observed", default=None, help="The observed channel (default: the first).")
+@click.option("--name", default=None, help="The benchmark name (default: the files' dataset_name).")
+@click.option("--overwrite", is_flag=True, help="Replace --out if it exists.")
+def import_the_well_command(folder: Path, out: Path, param: str | None, valid: str, observed: str | None,
+                            name: str | None, overwrite: bool) -> None:
+    """Import a dataset folder of The Well.
+
+    FOLDER holds The Well's files in data/train, data/valid and data/test (or train, valid, test); they
+    become one schema file: the time-varying fields are the channels (a vector field's components
+    channels of their own), the varying simulation parameter the parameter."""
+    from .dataset.the_well import import_the_well
+
+    _imported(lambda: import_the_well(folder, out, param=param, valid=valid, observed=observed, name=name,
+                                      overwrite=overwrite), out)
+
+
+@data_import.command("pdebench")
+@click.argument("files", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="The schema file to write.")
+@click.option("--test", "test", multiple=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="A file (viscosity) held out as the test split; repeat for several.")
+@click.option("--test-fraction", type=float, default=None,
+              help="Without --test: the share of each file's first trajectories held out (PDEBench's 0.1).")
+@click.option("--max-per-file", type=click.IntRange(min=1), default=None, help="Keep each file's first N trajectories.")
+@click.option("--name", default="pdebench_burgers", show_default=True, help="The benchmark name.")
+@click.option("--overwrite", is_flag=True, help="Replace --out if it exists.")
+def import_pdebench_command(files: tuple[Path, ...], out: Path, test: tuple[Path, ...], test_fraction: float | None,
+                            max_per_file: int | None, name: str, overwrite: bool) -> None:
+    """Import PDEBench 1D Burgers files.
+
+    FILES are PDEBench's 1D_Burgers_Sols_Nu<value>.hdf5 (one viscosity each, the parameter nu); they become
+    one schema file. The test split is the --test files, or else the first tenth of each file (PDEBench's)."""
+    from .dataset.pdebench import import_pdebench
+
+    _imported(lambda: import_pdebench(files, out, test=test, test_fraction=test_fraction, max_per_file=max_per_file,
+                                      name=name, overwrite=overwrite), out)
 
 
 #: Optional Python packages: (import name, distribution, what needs it, pip extra).

@@ -311,6 +311,17 @@ def test_cylinder_small_file_and_physics(cylinder_small) -> None:
         np.testing.assert_allclose(extras[split]["t_start"], 40.0)  # the small preset's fixed spin-up
 
 
+def test_cylinder_small_round_trips_through_the_well(cylinder_small, tmp_path: Path) -> None:
+    """The real cylinder data, obstacle cell types included, exported to The Well's layout and imported back:
+    the same fields and the same EKF results (tests/test_importers.py checks the layout itself)."""
+    from dks_gym.dataset.the_well import export_the_well, import_the_well
+
+    from .round_trip import assert_round_trip
+
+    export_the_well(cylinder_small, tmp_path / "well")
+    assert_round_trip(cylinder_small, import_the_well(tmp_path / "well", tmp_path / "cylinder.h5"))
+
+
 def test_cylinder_env_passes_check_env(cylinder_small) -> None:
     env = gym.make("DKS/Cylinder-v0", data_path=str(cylinder_small))
     check_env(env.unwrapped, skip_render_check=True)

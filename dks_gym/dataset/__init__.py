@@ -5,7 +5,10 @@
 * :mod:`.writer`: :func:`write_dataset` (a temporary file renamed into place when complete, under a lock)
   and :func:`generate_dataset` (a benchmark's generator run into the data home);
 * :mod:`.reader`: :class:`Dataset`, a validated file read lazily, :func:`load_dataset`, and
-  :func:`load_benchmark`, the benchmark a file describes (a custom one: your own flow, any grid).
+  :func:`load_benchmark`, the benchmark a file describes (a custom one: your own flow, any grid);
+* :mod:`.the_well`, :mod:`.pdebench`: other collections' layouts imported into the schema
+  (:func:`import_the_well`, :func:`import_pdebench`, through :mod:`.importing`) and exported to them
+  (:func:`export_the_well`, :func:`export_pdebench`); a file breaking its layout raises :class:`LayoutError`.
 
 Files are written to a temporary name next to the target, under a lock (kept in ``$DKS_GYM_HOME/.locks``,
 see :mod:`dks_gym.locks`), and renamed into place only when complete, so a failed generation, Ctrl-C,
@@ -13,6 +16,8 @@ SIGTERM or SIGHUP never leaves a file that looks valid, nor a temporary one. Rea
 file or NaN/inf in a trajectory with :class:`DataError`, naming the file and what to do.
 """
 
+from .importing import LayoutError
+from .pdebench import export_pdebench, import_pdebench
 from .reader import Dataset, load_benchmark, load_dataset, missing_message
 from .schema import (
     AXES,
@@ -24,6 +29,7 @@ from .schema import (
     SchemaError,
     validate,
 )
+from .the_well import export_the_well, import_the_well
 from .writer import generate_dataset, write_dataset
 
 __all__ = [
@@ -34,8 +40,13 @@ __all__ = [
     "DataError",
     "Dataset",
     "DatasetMissing",
+    "LayoutError",
     "SchemaError",
+    "export_pdebench",
+    "export_the_well",
     "generate_dataset",
+    "import_pdebench",
+    "import_the_well",
     "load_benchmark",
     "load_dataset",
     "missing_message",
