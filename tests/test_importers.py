@@ -21,7 +21,7 @@ import pytest
 from click.testing import CliRunner
 
 from dks_gym.cli import main
-from dks_gym.dataset import LayoutError, export_pdebench, export_the_well, import_pdebench, import_the_well
+from dks_gym.dataset import Dataset, LayoutError, export_pdebench, export_the_well, import_pdebench, import_the_well
 
 from .round_trip import assert_round_trip, ekf_run
 
@@ -122,6 +122,9 @@ def test_the_well_layout_imports_channels_splits_parameter_and_stats(well, tmp_p
         generator = __import__("json").loads(f.attrs["generator"])
     assert generator["skipped"] == ["scalars/Re", "t0_fields/density"]
     assert generator["boundary_conditions"] == {"x_periodic": "PERIODIC"}
+    bench = Dataset(out).benchmark  # a custom benchmark the package opens as it is
+    assert (bench.name, bench.env_id, bench.grid, bench.param_name) == ("tiny_flow_2d", "DKS/Custom-v0",
+                                                                        got["train/fields"].shape[3:], "Re")
 
     dropped = _datasets(import_the_well(root, tmp_path / "drop.h5", valid="drop", observed="velocity_x", name="mine"))
     np.testing.assert_array_equal(dropped["train/fields"], expected["train"])
@@ -226,6 +229,8 @@ def test_pdebench_layout_splits_like_pdebench_or_by_file(pdebench, tmp_path: Pat
     with h5py.File(tmp_path / "a.h5", "r") as f:
         assert f.attrs["benchmark"] == "pdebench_burgers" and f.attrs["param_name"] == "nu"
         assert np.isclose(f.attrs["dt"], 0.01, rtol=1e-6) and tuple(f.attrs["channels"]) == ("u",)
+    bench = Dataset(tmp_path / "a.h5").benchmark
+    assert (bench.name, bench.param_range, bench.grid) == ("pdebench_burgers", (0.001, 0.01), (8,))
     _assert_stats(got, got["train/fields"])
 
     got = _datasets(import_pdebench(paths, tmp_path / "b.h5", test=paths[1:], max_per_file=3))  # each file once

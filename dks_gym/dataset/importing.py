@@ -23,14 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from ..benchmarks import BENCHMARKS, Benchmark, GeneratedData
+from ..benchmarks import BENCHMARKS, Benchmark, CustomBenchmark, GeneratedData
 from .writer import write_dataset
 
 #: How far apart the steps of a time axis may be, relative to the mean step (float32 times of the source
 #: collections round to ~1e-7 of their magnitude; a genuinely uneven sampling differs by far more).
 STEP_TOLERANCE = 1e-3
-#: The env id of a benchmark that is none of the four (the env reads its description from the file).
-CUSTOM_ENV_ID = "DKS/Custom-v0"
 
 
 class LayoutError(ValueError):
@@ -108,12 +106,14 @@ def target_benchmark(flow: ImportedFlow, observed: str | None = None) -> tuple[B
     observed = channels[0] if observed is None else observed
     if observed not in channels:
         raise ValueError(f"the observed channel {observed!r} is not one of the imported channels {list(channels)}")
-    bench = Benchmark(
-        name=flow.name, env_id=CUSTOM_ENV_ID, grid=flow.grid, channels=channels, observed_channel=observed,
+    # A CustomBenchmark checks the name, the grid and the cell-type codes here, before anything is written.
+    bench = CustomBenchmark(
+        name=flow.name, grid=flow.grid, channels=channels, observed_channel=observed,
         scored_channels=channels, param_name=flow.param_name, param_range=parameter_range(flow.params),
         dt=flow.dt, n_frames=len(flow.time),
         n_train=len(flow.params["train"]), n_test=len(flow.params["test"]),
         cell_type_codes=dict(flow.cell_type_codes), solid_codes=tuple(flow.solid_codes),
+        coordinates=tuple(flow.coords), cell_types=flow.cell_type,
     )
     return bench, list(range(len(channels)))
 
