@@ -261,6 +261,11 @@ def test_decoder_at_cells_equals_the_whole_decode(benchmark, preset):
             for layout in (shared, per_row, few):
                 torch.testing.assert_close(decoder.at_cells(x, layout, channel), whole[:, channel].gather(1, layout),
                                            rtol=1e-12, atol=1e-12)
+        # the folded products of a layout are kept per layout and weights: new weights, new products
+        decoder.fc[-1].weight.mul_(-2.0)
+        decoder.deconv[-1].bias.add_(1.0)
+        torch.testing.assert_close(decoder.at_cells(x, few, 0), decoder(x).flatten(2)[:, 0].gather(1, few),
+                                   rtol=1e-12, atol=1e-12)
 
 
 def test_observe_reads_per_row_layouts_as_the_whole_decode():

@@ -10,7 +10,9 @@ from __future__ import annotations
 import contextlib
 import math
 import warnings
+from collections import OrderedDict
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -133,6 +135,11 @@ class ConvDecoder(nn.Module):
         self.act = nn.GELU()
         self._receptive_radius: int | None = None
         self._cell_plans: dict[int, tuple[list[int], np.ndarray]] = {}
+        self._layouts: OrderedDict[tuple, tuple[int, list[tuple]]] = OrderedDict()  # see _layout
+
+    def _apply(self, fn: Any, *args: Any, **kwargs: Any) -> "ConvDecoder":
+        self._layouts.clear()  # products of the weights in their old dtype or device
+        return super()._apply(fn, *args, **kwargs)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         """(B, r) -> (B, C_out, *grid) normalized output."""
@@ -311,73 +318,100 @@ class ConvDecoder(nn.Module):
         (:meth:`_stage_matrix`), cropped after it to what the next stage reads (:meth:`_cell_windows`): on the
         Burgers grid windows of 5, 4 and 3 cells in, against 128, 256 and 512 cells per stage of a whole decode.
         Where every row reads the same cells (one sensor layout), few enough that their windows hold fewer
-        features than the bottleneck, the crops are folded into the matrices, one per cell, and the first stage
-        into the last dense layer, which then computes only what the windows need.
+        features than the bottleneck, the crops are folded into the matrices and the first stage into the last
+        dense layer, once per layout (:meth:`_layout`).
         """
         n, m = cells.shape
-        _, *bottleneck = self.bottleneck
-        grid = tuple(b * 2 ** len(self.deconv) for b in bottleneck)
         cells = cells.to(x.device)
-        plans = [self._cell_windows(b) for b in bottleneck]
-        widths = [tuple(w[i] for w, _ in plans) for i in range(len(self.deconv))] + [(1,) * len(grid)]
-        # One layout, and fewer window features than the last dense layer has outputs: fold (see above).
-        stages = None
+        widths = self._window_widths()
         if m * self.deconv[0].out_channels * math.prod(widths[1]) <= math.prod(self.bottleneck) \
                 and bool((cells == cells[:1]).all()):
-            stages = [self._stage_matrix(i, w) for i, w in enumerate(widths[:-1])]
-            stages = stages if all(stage is not None for stage in stages) else None
-        coords = torch.unravel_index(cells.reshape(-1) if stages is None else cells[0], grid)  # per axis (k,)
-        # per stage, per axis (k,): the window starts, then the output cell itself
-        starts = [[torch.as_tensor(s[i], device=x.device)[c] for (_, s), c in zip(plans, coords)]
-                  for i in range(len(self.deconv))] + [list(coords)]
-        if stages is not None:
-            return self._at_shared_cells(x, starts, widths, stages, channel)
-        return self._at_cells(x, n, starts, widths, channel)
+            layout = self._layout(cells[0], channel)
+            if layout is not None:
+                return self._at_layout(x, layout)
+        return self._at_cells(x, cells, channel)
 
-    def _at_shared_cells(self, x: torch.Tensor, starts: list[list[torch.Tensor]], widths: list[tuple[int, ...]],
-                         stages: list[tuple[torch.Tensor, torch.Tensor]], channel: int) -> torch.Tensor:
-        """:meth:`at_cells` where all N rows read the same m cells. Every stage's matrix keeps only the columns of
-        the next window (the crop); the first stage's, one per cell, are folded into the last dense layer, so it
-        computes (N, m, K_1) in one product; a later stage is one product per distinct crop (one for cells
-        evenly spaced on the grid, as the paper layouts are) over all N m rows."""
-        device, (channels, *_), n_stages = x.device, self.bottleneck, len(self.deconv)
-        hidden_net, last = self.fc[:-1], self.fc[-1]
-        h = hidden_net(x) if len(hidden_net) else x
-        n, m = len(h), len(starts[0][0])
-        columns = self._flat_windows(self.bottleneck[1:], torch.arange(channels, device=device), starts[0], widths[0])
-        for i, (matrix, bias) in enumerate(stages):
-            kept = torch.arange(self.deconv[i].out_channels, device=device) if i + 1 < n_stages else \
+    def _window_widths(self) -> list[tuple[int, ...]]:
+        """Per stage the input window's cells per axis (:meth:`_cell_windows`), then the output cell's (1, ...)."""
+        plans = [self._cell_windows(b) for b in self.bottleneck[1:]]
+        return [tuple(w[i] for w, _ in plans) for i in range(len(self.deconv))] + [(1,) * len(plans)]
+
+    def _window_starts(self, cells: torch.Tensor) -> list[list[torch.Tensor]]:
+        """Per stage, per axis, the window starts of flat output ``cells`` (k,); last, the cells' coordinates."""
+        grid = tuple(b * 2 ** len(self.deconv) for b in self.bottleneck[1:])
+        coords = torch.unravel_index(cells, grid)  # per axis (k,)
+        plans = [torch.as_tensor(self._cell_windows(b)[1], device=cells.device) for b in self.bottleneck[1:]]
+        return [[s[i][c] for s, c in zip(plans, coords)] for i in range(len(self.deconv))] + [list(coords)]
+
+    def _layout(self, cells: torch.Tensor, channel: int) -> tuple[int, list[tuple]] | None:
+        """:meth:`at_cells`' products for one layout of m ``cells``: ``(m, stages)``, per stage a matrix, a bias,
+        each cell's crop among the G distinct ones (None where G = 1) and G. The first stage's matrix keeps, per
+        cell, its window's columns (the crop) and is folded into the window's rows of the last dense layer,
+        (H, m K_1); a later stage's is (K_in, G K_out) (G = 1 for cells evenly spaced on the grid, as the paper
+        layouts are). None where a stage has no matrix. Cached per layout and weights (not while the weights
+        are being differentiated)."""
+        differentiated = torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters())
+        key = (cells.cpu().numpy().tobytes(), channel, tuple(p._version for p in self.parameters()))
+        if not differentiated and key in self._layouts:
+            self._layouts.move_to_end(key)
+            return self._layouts[key]
+        widths, starts = self._window_widths(), self._window_starts(cells)
+        matrices = [self._stage_matrix(i, w) for i, w in enumerate(widths[:-1])]
+        if any(stage is None for stage in matrices):
+            return None
+        device, last, stages = cells.device, self.fc[-1], []
+        for i, (matrix, bias) in enumerate(matrices):
+            kept = torch.arange(self.deconv[i].out_channels, device=device) if i + 1 < len(matrices) else \
                 torch.tensor([channel], device=device)
             offsets = torch.stack([t - 2 * s for t, s in zip(starts[i + 1], starts[i])], 1)  # (m, axes)
+            distinct, group = (offsets, None) if i == 0 else torch.unique(offsets, dim=0, return_inverse=True)
+            crop = self._flat_windows(tuple(2 * w for w in widths[i]), kept, list(distinct.T), widths[i + 1])
+            matrix, bias = matrix[:, crop], bias[crop]  # (K_in, G, K_out), (G, K_out)
             if i == 0:  # per cell: the window's rows of the last dense layer, times the cropped stage
-                crop = self._flat_windows(tuple(2 * w for w in widths[0]), kept, list(offsets.T), widths[1])
-                folded = last.weight[columns].mT @ matrix[:, crop].movedim(1, 0)  # (m, H, K_1)
-                bias = (last.bias[columns][:, None, :] @ matrix[:, crop].movedim(1, 0))[:, 0] + bias[crop]
-                h = torch.addmm(bias.reshape(-1), h, folded.movedim(0, 1).reshape(h.shape[1], -1)).view(n, m, -1)
-            else:
-                distinct, group = torch.unique(offsets, dim=0, return_inverse=True)
-                crop = self._flat_windows(tuple(2 * w for w in widths[i]), kept, list(distinct.T), widths[i + 1])
-                h = torch.addmm(bias[crop].reshape(-1), h.reshape(n * m, -1), matrix[:, crop].reshape(len(matrix), -1))
-                h = h.view(n, m, len(distinct), -1)
-                h = h[:, :, 0] if len(distinct) == 1 else h[:, torch.arange(m, device=device), group]
-            if i + 1 < n_stages:
-                h = self.act(h)
-        return h[..., 0]
+                columns = self._flat_windows(self.bottleneck[1:], torch.arange(self.bottleneck[0], device=device),
+                                             starts[0], widths[0])  # (m, K_0)
+                bias = (last.bias[columns][:, None, :] @ matrix.movedim(1, 0))[:, 0] + bias
+                matrix = (last.weight[columns].mT @ matrix.movedim(1, 0)).movedim(0, 1)  # (H, m, K_1)
+            stages.append((matrix.reshape(len(matrix), -1), bias.reshape(-1),
+                           None if i == 0 or len(distinct) == 1 else group, len(distinct)))
+        layout = (len(cells), stages)
+        if not differentiated:
+            self._layouts[key] = layout
+            while len(self._layouts) > 8:
+                self._layouts.popitem(last=False)
+        return layout
 
-    def _at_cells(self, x: torch.Tensor, n: int, starts: list[list[torch.Tensor]], widths: list[tuple[int, ...]],
-                  channel: int) -> torch.Tensor:
+    def _at_layout(self, x: torch.Tensor, layout: tuple[int, list[tuple]]) -> torch.Tensor:
+        """:meth:`at_cells` for N rows that read one layout's m cells (:meth:`_layout`): the hidden dense layers,
+        then one product per stage over all N m rows -> (N, m)."""
+        m, stages = layout
+        hidden_net = self.fc[:-1]
+        h = hidden_net(x) if len(hidden_net) else x
+        n = len(h)
+        for i, (matrix, bias, group, n_crops) in enumerate(stages):
+            h = torch.addmm(bias, h.reshape(-1, len(matrix)), matrix)  # (N, m K_1), then (N m, G K_out)
+            if i and group is None:
+                h = h.view(n * m, -1)
+            elif i:  # each cell's own crop
+                h = h.view(n, m, n_crops, -1)[:, torch.arange(m, device=h.device), group].reshape(n * m, -1)
+            if i + 1 < len(stages):
+                h = self.act(h)
+        return h.view(n, m)
+
+    def _at_cells(self, x: torch.Tensor, cells: torch.Tensor, channel: int) -> torch.Tensor:
         """:meth:`at_cells` for any cells: the dense layers whole, then the windows cut from their output and
         from every stage's (one indexing of an unfolded view each)."""
+        n, m = cells.shape
+        widths, starts = self._window_widths(), self._window_starts(cells.reshape(-1))
         features = self.fc(x).view(n, *self.bottleneck)
-        k = len(starts[0][0])
-        h = self._windows(features, torch.arange(n, device=x.device).repeat_interleave(k // n), starts[0], widths[0])
-        every = torch.arange(k, device=x.device)
+        h = self._windows(features, torch.arange(n, device=x.device).repeat_interleave(m), starts[0], widths[0])
+        every = torch.arange(n * m, device=x.device)
         for i in range(len(self.deconv)):
             h = self._window_stage(i, h)
             if i + 1 == len(self.deconv):
                 h = h[:, channel:channel + 1]
             h = self._windows(h, every, [t - 2 * s for t, s in zip(starts[i + 1], starts[i])], widths[i + 1])
-        return h.reshape(n, -1)
+        return h.reshape(n, m)
 
     def sensor_jacobian(self, x: torch.Tensor, cells: torch.Tensor, channel: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Output ``channel`` at ``cells`` and its Jacobian with respect to the input, decoding only the window
