@@ -420,7 +420,7 @@ def refreshed(previous: dict[str, Any], run: dict[str, Any], names: list[str]) -
             out[name] = sorted(kept + run[name], key=lambda row: (row["filter"] != "ekf", row["num_envs"]))
         else:
             out[name] = run[name]
-        out.setdefault("refreshed", {})[name] = run["machine"]
+    out["refreshed"] = {**previous.get("refreshed", {}), **{name: run["machine"] for name in names}}
     return out
 
 

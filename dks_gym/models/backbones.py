@@ -183,7 +183,7 @@ class ConvDecoder(nn.Module):
         """Stage ``i`` before its GELU on a window of ``widths`` cells as a matrix and a bias, ``(K_in, K_out)`` and
         ``(K_out,)`` over the window's flat C-order cells (channels first): upsampling and convolution are linear,
         so the matrix is the stage applied to the identity (cheap, and differentiable in the weights). None where
-        it would pass 2^20 entries (the paper sphere's first stage)."""
+        it would pass 2^20 entries (the paper sphere's wide first stages)."""
         layer = self.deconv[i]
         n_in = layer.in_channels * math.prod(widths)
         n_out = layer.out_channels * math.prod(2 * w for w in widths)
@@ -349,10 +349,14 @@ class ConvDecoder(nn.Module):
         cell, its window's columns (the crop) and is folded into the window's rows of the last dense layer,
         (H, m K_1); a later stage's is (K_in, G K_out) (G = 1 for cells evenly spaced on the grid, as the paper
         layouts are). None where a stage has no matrix. Cached per layout and weights (not while the weights
-        are being differentiated)."""
-        differentiated = torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters())
-        key = (cells.cpu().numpy().tobytes(), channel, tuple(p._version for p in self.parameters()))
-        if not differentiated and key in self._layouts:
+        are being differentiated, nor inside torch.func's transforms)."""
+        key = None
+        if not (torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters())):
+            try:
+                key = (cells.cpu().numpy().tobytes(), channel, tuple(p._version for p in self.parameters()))
+            except RuntimeError:  # inside torch.func's transforms (autodiff Jacobians) a tensor has no data to read
+                key = None
+        if key in self._layouts:
             self._layouts.move_to_end(key)
             return self._layouts[key]
         widths, starts = self._window_widths(), self._window_starts(cells)
@@ -375,7 +379,7 @@ class ConvDecoder(nn.Module):
             stages.append((matrix.reshape(len(matrix), -1), bias.reshape(-1),
                            None if i == 0 or len(distinct) == 1 else group, len(distinct)))
         layout = (len(cells), stages)
-        if not differentiated:
+        if key is not None:
             self._layouts[key] = layout
             while len(self._layouts) > 8:
                 self._layouts.popitem(last=False)
