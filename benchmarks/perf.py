@@ -11,7 +11,8 @@ keeps every rep's median and the ratio. Sections:
 - ``ekf`` / ``enkf``: one filter step at batch B against its floor (the forecast, the observation and, for the
   EKF, its Jacobian at the sensors, and the Kalman algebra, each timed alone) and, for the EKF, against the FLOP
   floor: (m + 1) decoder passes at one element (the issue's count: one decode and one reverse pass per sensor)
-  at the matmul peak; the EKF step also with its diagnostics switched off;
+  at the matmul peak; the EKF step also with its diagnostics switched off; for the EnKF, the members' readings
+  (from their sensors' windows) against decoding every member's whole field;
 - ``jacobian``: the decoder Jacobian at the sensors, sensor-local against autodiff through the whole decoder;
 - ``vector``: the batched vector env (``uncertainty=False``, as for RL) at N envs against N separate
   ``LatentFilter`` envs, per env-step, EKF and EnKF (n = 20);
@@ -22,6 +23,11 @@ keeps every rep's median and the ratio. Sections:
 
     OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --sections enkf vector --filters enkf   # refresh those entries
+
+``--sections`` (and ``--filters`` for the vector section) run only some of it and refresh only their entries of an
+existing ``--out`` (the vector section's rows by filter and N); the rest of the file is kept, and each refreshed
+section's machine and load are recorded under ``refreshed``.
 """
 
 from __future__ import annotations
@@ -159,6 +165,20 @@ def started_vector_env(model: Any, n: int, kind: str, n_members: int = 20) -> La
     return venv
 
 
+def whole_grid_observe(model: Any, venv: LatentFilterVectorEnv) -> Callable[[torch.Tensor], torch.Tensor]:
+    """h(z) of the venv's elements through the whole decode, reading the sensors off the field (``k * B`` rows)."""
+    mu = torch.tensor([e.mu for e in venv.envs], dtype=torch.float32)
+    sensors = torch.as_tensor(np.stack([e.sensors for e in venv.envs]))
+    channel = venv.benchmark.observed_index
+
+    def observe(z: torch.Tensor) -> torch.Tensor:
+        k = z.shape[0] // len(mu)
+        fields = model.decode(z, mu.repeat_interleave(k)).flatten(2)[:, channel]
+        return fields.gather(1, sensors.repeat_interleave(k, dim=0))
+
+    return observe
+
+
 def ekf_section(model: Any, batch: int, reps: int, inner: int) -> dict[str, Any]:
     """One EKF step at ``batch`` against its floor and the FLOP floor; diagnostics on and off."""
     venv = started_vector_env(model, batch, "ekf")
@@ -227,17 +247,28 @@ def enkf_section(model: Any, batch: int, n_members: int, reps: int, inner: int) 
         with torch.no_grad():
             dyn.observe(flat)
 
+    whole = whole_grid_observe(model, venv)
+
+    def observe_whole_grid() -> None:  # every member's whole field decoded, the sensors read off it
+        with torch.no_grad():
+            whole(flat)
+
     single = started_vector_env(model, 1, "enkf", n_members).filter  # what each of B separate envs decodes
 
     def observe_one_env() -> None:
         with torch.no_grad():
             single.dynamics.observe(single.ensemble.reshape(n_members, -1))
 
+    with torch.no_grad():
+        error = float((dyn.observe(flat) - whole(flat)).abs().max() / whole(flat).abs().max())
     times = interleaved({"step": step, "forecast": forecast, "observe": observe, "algebra": algebra,
-                         "observe_one_env": observe_one_env}, reps, inner)
+                         "observe_one_env": observe_one_env, "observe_whole_grid": observe_whole_grid}, reps, inner)
     floor = [f + o + a for f, o, a in zip(times["forecast"], times["observe"], times["algebra"])]
     return {"batch": batch, "n_members": n_members, "ms": times, "floor_ms": floor,
             "step_over_floor": med(times["step"]) / med(floor),
+            # The members' readings from their sensors' windows against decoding every member's whole field.
+            "observe_speedup_over_whole_grid": med(times["observe_whole_grid"]) / med(times["observe"]),
+            "observe_max_relative_difference": error,
             # How much one decode of all B * n members saves over B decodes of n: the most batching can give.
             "observe_batching_gain": batch * med(times["observe_one_env"]) / med(times["observe"])}
 
@@ -248,7 +279,7 @@ def jacobian_section(model: Any, batch: int, reps: int, inner: int) -> dict[str,
     dyn = venv.filter.dynamics
     z = venv.filter.mean.clone()
     local = lambda: observe_with_jacobian(dyn, z)  # noqa: E731
-    full = lambda: value_and_jacobian(dyn.observe, z)  # noqa: E731
+    full = lambda: value_and_jacobian(whole_grid_observe(model, venv), z)  # noqa: E731
     error = float((local()[1] - full()[1]).abs().max() / full()[1].abs().max())
     times = interleaved({"sensor_local": local, "autodiff_full_decoder": full}, reps, inner)
     return {"batch": batch, "ms": times, "speedup": med(times["autodiff_full_decoder"]) / med(times["sensor_local"]),
@@ -375,12 +406,34 @@ def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list
     return rows
 
 
+SECTIONS = ("env", "jacobian", "ekf", "enkf", "algebra", "vector", "training")
+
+
+def refreshed(previous: dict[str, Any], run: dict[str, Any], names: list[str]) -> dict[str, Any]:
+    """``previous`` results with the sections ``names`` of a partial ``run`` in place of theirs (the vector
+    section's rows matched by filter and N) and the run's machine and load under ``refreshed``."""
+    out = dict(previous)
+    for name in names:
+        if name == "vector":
+            fresh = {(row["filter"], row["num_envs"]) for row in run[name]}
+            kept = [row for row in previous.get(name, []) if (row["filter"], row["num_envs"]) not in fresh]
+            out[name] = sorted(kept + run[name], key=lambda row: (row["filter"] != "ekf", row["num_envs"]))
+        else:
+            out[name] = run[name]
+    out["refreshed"] = {**previous.get("refreshed", {}), **{name: run["machine"] for name in names}}
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--sizes", nargs="+", type=int, default=[1, 16, 64, 256])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, one rep: checks that every section runs")
+    parser.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS),
+                        help="run only these sections and refresh only their entries of --out")
+    parser.add_argument("--filters", nargs="+", choices=("ekf", "enkf"), default=["ekf", "enkf"],
+                        help="the vector section's filters")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "perf.json"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -400,16 +453,17 @@ def main() -> None:
         "ekf": lambda: ekf_section(model, batch, reps, inner),
         "enkf": lambda: enkf_section(model, batch, 20, reps, inner),
         "algebra": lambda: algebra_section(reps, inner),
-        "vector": lambda: vector_section(model, sizes, "ekf", reps, steps)
-        + vector_section(model, sizes, "enkf", reps, steps),
+        "vector": lambda: [row for kind in args.filters for row in vector_section(model, sizes, kind, reps, steps)],
         "training": lambda: training_section(ds, presets, reps, 1 if args.quick else 3),
     }
-    for name, run in sections.items():
+    for name in args.sections:
         tic = time.perf_counter()
-        result[name] = run()
+        result[name] = sections[name]()
         print(f"{name}: {time.perf_counter() - tic:.1f} s", flush=True)
     result["machine"]["loadavg_end"] = list(os.getloadavg())
     out = Path(args.out)
+    if (len(args.sections) < len(SECTIONS) or len(args.filters) < 2) and out.exists():
+        result = refreshed(json.loads(out.read_text()), result, args.sections)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {out}")

@@ -24,3 +24,24 @@ def test_perf_benchmark_writes_every_section(burgers_small: Path, tmp_path: Path
     assert {(row["filter"], row["num_envs"]) for row in result["vector"]} == {
         ("ekf", 1), ("ekf", 4), ("enkf", 1), ("enkf", 4)}
     assert all(row["fraction_of_peak"]["training_mode"] > 0 for row in result["training"])
+    # The members' readings it times (from their sensors' windows) are the whole-grid decode's.
+    assert result["enkf"]["observe_max_relative_difference"] < 1e-5
+
+
+def test_a_partial_perf_run_refreshes_only_its_entries() -> None:
+    """``--sections`` / ``--filters`` replace only the sections (the vector rows by filter and N) they ran."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("perf", ROOT / "benchmarks" / "perf.py")
+    perf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(perf)
+    previous = {"machine": {"run": "full"}, "ekf": {"ms": 1}, "enkf": {"ms": 2},
+                "vector": [{"filter": "ekf", "num_envs": 256, "speedup": 17}, {"filter": "enkf", "num_envs": 16},
+                           {"filter": "enkf", "num_envs": 256, "speedup": 5}]}
+    run = {"machine": {"run": "partial"}, "enkf": {"ms": 3}, "vector": [{"filter": "enkf", "num_envs": 256,
+                                                                          "speedup": 14}]}
+    out = perf.refreshed(previous, run, ["enkf", "vector"])
+    assert out["machine"] == {"run": "full"} and out["ekf"] == {"ms": 1} and out["enkf"] == {"ms": 3}
+    assert out["vector"] == [previous["vector"][0], previous["vector"][1], run["vector"][0]]
+    assert out["refreshed"] == {"enkf": {"run": "partial"}, "vector": {"run": "partial"}}
+    assert previous["vector"][2]["speedup"] == 5  # the previous results are not changed in place

@@ -227,6 +227,66 @@ def test_sensor_local_jacobian_is_used_only_where_a_window_saves_work():
     assert _lite("sphere", "koopman").decoder.window() == (3, 3, 3)
 
 
+@pytest.mark.parametrize("benchmark, preset", [("burgers", "lite"), ("burgers", "paper"), ("cylinder", "lite"),
+                                               ("sphere", "lite")])
+def test_decoder_at_cells_equals_the_whole_decode(benchmark, preset):
+    """The decoder at chosen cells from only the cells each reads (one window per cell, cropped stage by stage)
+    equals the whole decode there in float64 to round-off: at every cell of the 1D grid (both edges, where the
+    windows are clamped) and at the 2D and 3D grids' corners, edges and cells inside, with one layout for every
+    row and one per row (16 cells of one layout: the crops folded into per-cell matrices)."""
+    from dataclasses import replace
+
+    from dks_gym.models.backbones import ConvDecoder
+    from dks_gym.models.presets import backbone_spec
+
+    shape, spec = BENCHMARK_SHAPES[benchmark], backbone_spec(benchmark, preset)
+    if shape.ndim > 1:  # narrower layers (the same kernels, paddings and stages): float64 convolutions are slow
+        spec = replace(spec, conv_channels=(2,) * len(spec.conv_channels), fc_widths=(16,))
+    decoder = ConvDecoder(shape, spec, 4).double().eval()
+    torch.manual_seed(6)
+    x = torch.randn(2, 4, dtype=torch.float64)
+    n_cells = int(np.prod(shape.grid))
+    if shape.ndim == 1:
+        cells = np.arange(n_cells)
+    else:  # the corners and edges of the grid, and cells inside
+        edges = [0, 1, 2, shape.grid[0] - 2, shape.grid[0] - 1]
+        corners = np.ravel_multi_index(np.stack(np.meshgrid(*[edges] * shape.ndim)).reshape(shape.ndim, -1), shape.grid)
+        cells = np.r_[corners, np.random.default_rng(0).choice(n_cells, 10, replace=False)]
+    with torch.no_grad():
+        whole = decoder(x).flatten(2)
+        for channel in (0, whole.shape[1] - 1):
+            shared = torch.as_tensor(cells).expand(2, -1)  # one layout
+            per_row = torch.as_tensor(np.stack([cells, cells[::-1].copy()]))  # a layout per row
+            few = torch.as_tensor(cells[:: len(cells) // 16][:16]).expand(2, -1)
+            for layout in (shared, per_row, few):
+                torch.testing.assert_close(decoder.at_cells(x, layout, channel), whole[:, channel].gather(1, layout),
+                                           rtol=1e-12, atol=1e-12)
+        # the folded products of a layout are kept per layout and weights: new weights, new products
+        decoder.fc[-1].weight.mul_(-2.0)
+        decoder.deconv[-1].bias.add_(1.0)
+        torch.testing.assert_close(decoder.at_cells(x, few, 0), decoder(x).flatten(2)[:, 0].gather(1, few),
+                                   rtol=1e-12, atol=1e-12)
+
+
+def test_observe_reads_per_row_layouts_as_the_whole_decode():
+    """``observe`` with one layout per row (how the filters call it) equals the decoded fields at those cells: the
+    Burgers model reads them from their windows, the cylinder model decodes the whole field."""
+    for benchmark in ("burgers", "cylinder"):
+        model = _lite(benchmark, "koopman", r=4).double()
+        torch.manual_seed(7)
+        z, mu = torch.randn(3, 4, dtype=torch.float64), _mu_grid(benchmark, 3)
+        n_cells = int(np.prod(model.grid))
+        rows = np.stack([np.random.default_rng(i).choice(n_cells, 6, replace=False) for i in range(3)])
+        with torch.no_grad():
+            fields = model.decode(z, mu).flatten(2)[:, -1]
+            torch.testing.assert_close(model.observe(z, mu, rows, model.n_fields - 1),
+                                       fields.gather(1, torch.as_tensor(rows)), rtol=1e-12, atol=1e-12)
+            torch.testing.assert_close(model.observe(z, mu, rows[0], model.n_fields - 1), fields[:, rows[0]],
+                                       rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="one such layout per row"):
+        model.observe(z, mu, rows[:2], 0)
+
+
 def test_sphere_sensor_local_jacobian_equals_autodiff_through_the_whole_decoder():
     from dks_gym.filters.jacobians import value_and_jacobian
 
@@ -425,6 +485,7 @@ def test_sensor_local_jacobian_and_inference_decoder_on_cuda_match_cpu():
         h, J = m.filter_observe_jacobian(mu.to(device), rows, "u")(z.to(device))
         with torch.no_grad():
             fields = m.decode(z.to(device), mu.to(device))
-        out[device] = (h.cpu(), J.cpu(), fields.cpu())
+            readings = m.observe(z.to(device), mu.to(device), sensors, "u")  # from the sensors' windows
+        out[device] = (h.cpu(), J.cpu(), fields.cpu(), readings.cpu())
     for a, b in zip(out["cuda"], out["cpu"]):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)

@@ -397,6 +397,9 @@ def test_encode_decode_observe_in_physical_units():
     sensors = np.array([5, 700, 4095])
     y = model.observe(z, 300.0, sensors, channel=2)
     torch.testing.assert_close(y, x.flatten(2)[:, 2, sensors], rtol=1e-5, atol=1e-2)
+    rows = np.stack([sensors, sensors[::-1]])  # one layout per row, as the filters read them
+    torch.testing.assert_close(model.observe(z, 300.0, rows, channel=2),
+                               model.decode(z, 300.0).flatten(2)[:, 2].gather(1, torch.as_tensor(rows)))
     jac = model.observation_matrix(sensors, 2).double()
     ref = torch.autograd.functional.jacobian(lambda v: model.observe(v[None], 300.0, sensors, 2)[0], z[0])
     torch.testing.assert_close(jac, ref)

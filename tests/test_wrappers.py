@@ -12,7 +12,7 @@ from gymnasium.utils.env_checker import check_env
 
 import dks_gym  # noqa: F401
 from dks_gym.dataset import Dataset
-from dks_gym.models import build_model
+from dks_gym.models import LatentModel, build_model
 from dks_gym.models.calibration import calibrate
 from dks_gym.assimilation import FilterConfig
 from dks_gym.wrappers import LatentFilter
@@ -275,10 +275,29 @@ def test_sensor_local_jacobian_filters_like_autodiff_through_the_whole_decoder(
     assert models["mlp"].decoder.window() is not None
     local_mse, local_mean = episode()
     monkeypatch.setattr(type(models["mlp"]), "filter_observe_jacobian", lambda self, mu, rows, channel: None)
+    monkeypatch.setattr(type(models["mlp"]), "observe", LatentModel.observe)  # h(z) through the whole decode
     whole_mse, whole_mean = episode()
     np.testing.assert_allclose(local_mse, whole_mse, rtol=1e-4)
     np.testing.assert_allclose(local_mean, whole_mean, rtol=1e-4, atol=1e-5)
 
+
+def test_sensor_local_readings_filter_like_the_whole_decode(models: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The vector EnKF reading its members' sensors from their windows of the decoder (Koopman) or from rows of
+    the basis (pDMD) follows the one that decodes every member's whole field and reads the sensors off it (the
+    generic path, and the one before) to float32 round-off over a whole episode, with the same random draws."""
+    def episode(model) -> tuple[np.ndarray, np.ndarray]:
+        venv = LatentFilterVectorEnv("burgers", 2, model=model, filter="enkf", uncertainty=False, preset="small")
+        venv.reset(seed=0)
+        mses = [venv.step(np.zeros(2, dtype=np.int64))[4]["mse"] for _ in range(40)]
+        return np.array(mses), venv.filter.ensemble.numpy().copy()
+
+    for kind in ("koopman", "pdmd"):
+        local_mse, local_members = episode(models[kind])
+        with monkeypatch.context() as patch:
+            patch.setattr(type(models[kind]), "observe", LatentModel.observe)  # decode, then read the sensors
+            whole_mse, whole_members = episode(models[kind])
+        np.testing.assert_allclose(local_mse, whole_mse, rtol=1e-4)
+        np.testing.assert_allclose(local_members, whole_members, rtol=1e-4, atol=1e-5)
 
 @pytest.mark.filterwarnings("ignore:.*not within the observation space:UserWarning")  # NaN readings, by design
 @pytest.mark.parametrize("filt", ["ekf", "enkf"])

@@ -24,7 +24,7 @@ from ..dataset import Dataset
 from ..envs.sensing import SensingEnv
 from ..filters import EKF, EnKF, LatentDynamics, bind_param
 from ..filters.parameter import ParameterCoordinate, augment_with_parameter
-from ..models import FilterableModel, model_device, model_dtype
+from ..models import FilterableModel, LatentModel, model_device, model_dtype
 from ..threads import torch_threads
 from .config import FilterConfig
 from .errors import ctf_score, field_errors, relative_l2_errors
@@ -153,6 +153,8 @@ class Assimilation:
         c = model.shape.channels.index(channel)
 
         def observe(z: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+            if isinstance(model, LatentModel):  # reads the sensors without decoding the whole field where it can
+                return model.observe(z, m, rows(z.shape[0]), c)
             fields = model.decode(z, m).flatten(2)[:, c]
             return fields.gather(1, torch.as_tensor(rows(z.shape[0]), device=fields.device))
 

@@ -10,7 +10,9 @@ from __future__ import annotations
 import contextlib
 import math
 import warnings
+from collections import OrderedDict
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -22,6 +24,7 @@ from .presets import BackboneSpec, BenchmarkShape
 _CONV = {1: nn.Conv1d, 2: nn.Conv2d, 3: nn.Conv3d}
 _DECONV = {1: nn.ConvTranspose1d, 2: nn.ConvTranspose2d, 3: nn.ConvTranspose3d}
 _CONV_FN = {1: nn.functional.conv1d, 2: nn.functional.conv2d, 3: nn.functional.conv3d}
+_DECONV_FN = {1: nn.functional.conv_transpose1d, 2: nn.functional.conv_transpose2d, 3: nn.functional.conv_transpose3d}
 _UPSAMPLE_MODE = {1: "linear", 2: "bilinear", 3: "trilinear"}
 _STRIDE = 2
 
@@ -107,14 +110,14 @@ class ConvEncoder(nn.Module):
         return self.fc(self.conv(x).flatten(1))
 
 
-def _stride_one_transposed(layer: nn.Module, h: torch.Tensor) -> torch.Tensor:
+def _stride_one_transposed(layer: nn.Module, h: torch.Tensor, bias: bool = True) -> torch.Tensor:
     """A stride-1 transposed convolution computed as the equivalent plain convolution (flipped, transposed
     kernel, padding k - 1 - p): the same numbers to float32 round-off, 2-10x faster on CPU, where torch's
-    oneDNN path for ConvTranspose is slow (benchmarks/perf.py)."""
+    oneDNN path for ConvTranspose is slow (benchmarks/perf.py). ``bias=False`` leaves the bias out."""
     k, p = layer.kernel_size[0], layer.padding[0]
     spatial = tuple(range(2, layer.weight.ndim))
     weight = layer.weight.flip(spatial).transpose(0, 1)
-    return _CONV_FN[h.ndim - 2](h, weight, layer.bias, padding=k - 1 - p)
+    return _CONV_FN[h.ndim - 2](h, weight, layer.bias if bias else None, padding=k - 1 - p)
 
 
 class ConvDecoder(nn.Module):
@@ -142,6 +145,12 @@ class ConvDecoder(nn.Module):
             self.deconv.append(layer)
         self.act = nn.GELU()
         self._receptive_radius: int | None = None
+        self._cell_plans: dict[int, tuple[list[int], np.ndarray]] = {}
+        self._layouts: OrderedDict[tuple, tuple[int, list[tuple]]] = OrderedDict()  # see _layout
+
+    def _apply(self, fn: Any, *args: Any, **kwargs: Any) -> "ConvDecoder":
+        self._layouts.clear()  # products of the weights in their old dtype or device
+        return super()._apply(fn, *args, **kwargs)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         """(B, r) -> (B, C_out, *grid) normalized output (cropped from the padded grid where there is one)."""
@@ -167,15 +176,81 @@ class ConvDecoder(nn.Module):
         return torch.cat([self._convolve(block, fast=True) for block in h.split(rows)])
 
     def _convolve(self, h: torch.Tensor, fast: bool) -> torch.Tensor:
-        for i, layer in enumerate(self.deconv):
-            if self.mode == "upsample":
-                h = nn.functional.interpolate(h, scale_factor=2, mode=_UPSAMPLE_MODE[self.ndim])
-                h = _stride_one_transposed(layer, h) if fast else layer(h)
-            else:
-                h = layer(h)
-            if i < len(self.deconv) - 1:
-                h = self.act(h)
+        for i in range(len(self.deconv)):
+            h = self._stage(i, h, fast)
         return h
+
+    def _stage(self, i: int, h: torch.Tensor, fast: bool) -> torch.Tensor:
+        """Stage ``i`` of the convolutional part: x2 in every axis (upsampling and a size-preserving transposed
+        convolution, or a stride-2 one), then GELU unless it is the last."""
+        layer = self.deconv[i]
+        if self.mode == "upsample":
+            h = nn.functional.interpolate(h, scale_factor=2, mode=_UPSAMPLE_MODE[self.ndim])
+            h = _stride_one_transposed(layer, h) if fast else layer(h)
+        else:
+            h = layer(h)
+        return self.act(h) if i < len(self.deconv) - 1 else h
+
+    def _stage_matrix(self, i: int, widths: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Stage ``i`` before its GELU on a window of ``widths`` cells as a matrix and a bias, ``(K_in, K_out)`` and
+        ``(K_out,)`` over the window's flat C-order cells (channels first): upsampling and convolution are linear,
+        so the matrix is the stage applied to the identity (cheap, and differentiable in the weights). None where
+        it would pass 2^20 entries (the paper sphere's wide first stages)."""
+        layer = self.deconv[i]
+        n_in = layer.in_channels * math.prod(widths)
+        n_out = layer.out_channels * math.prod(2 * w for w in widths)
+        if n_in * n_out > 1 << 20:
+            return None
+        weight = self.deconv[i].weight
+        basis = torch.eye(n_in, dtype=weight.dtype, device=weight.device).view(n_in, layer.in_channels, *widths)
+        if self.mode == "upsample":
+            basis = nn.functional.interpolate(basis, scale_factor=2, mode=_UPSAMPLE_MODE[self.ndim])
+            matrix = _stride_one_transposed(layer, basis, bias=False)
+        else:
+            matrix = _DECONV_FN[self.ndim](basis, layer.weight, None, stride=layer.stride, padding=layer.padding,
+                                           output_padding=layer.output_padding)
+        return matrix.reshape(n_in, n_out), layer.bias.repeat_interleave(n_out // layer.out_channels)
+
+    def _window_stage(self, i: int, h: torch.Tensor) -> torch.Tensor:
+        """Stage ``i`` on many small windows (N, C, *w), as one product with :meth:`_stage_matrix`: a convolution
+        of windows a few cells wide runs many times slower on CPU than the product. A stage without a matrix
+        stays a convolution."""
+        stage = self._stage_matrix(i, tuple(h.shape[2:]))
+        if stage is None:
+            return self._stage(i, h, fast=not self.training)
+        matrix, bias = stage
+        out = (self.deconv[i].out_channels, *(2 * w for w in h.shape[2:]))
+        h = torch.addmm(bias, h.reshape(len(h), -1), matrix).view(len(h), *out)
+        return self.act(h) if i < len(self.deconv) - 1 else h
+
+    def _stage_inputs(self, lo: np.ndarray, hi: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+        """The input cells ``lo .. hi`` (one axis) that a stage's output cells ``lo .. hi`` read, for a stage
+        whose output has ``size`` cells on that axis: a stride-1 transposed convolution reads cells
+        ``j + p - k + 1 .. j + p``, a linear x2 upsampling ``floor(src)`` and the next one, a stride-2 transposed
+        convolution ``ceil((j + p - k + 1) / 2) .. floor((j + p) / 2)``; zero padding and clamping at the grid's
+        edges cut them."""
+        k, p = self.deconv[0].kernel_size[0], self.deconv[0].padding[0]
+        if self.mode == "upsample":
+            lo, hi = np.clip(lo + p - k + 1, 0, size - 1), np.clip(hi + p, 0, size - 1)
+            size //= 2
+            lo = np.floor(np.maximum((lo + 0.5) / 2 - 0.5, 0)).astype(int)
+            hi = np.minimum(np.floor(np.maximum((hi + 0.5) / 2 - 0.5, 0)).astype(int) + 1, size - 1)
+            return lo, hi
+        size //= 2
+        return (np.clip(np.ceil((lo + p - k + 1) / 2).astype(int), 0, size - 1),
+                np.clip(np.floor((hi + p) / 2).astype(int), 0, size - 1))
+
+    def _read_ranges(self, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per stage, the cells ``lo .. hi`` of its input (one axis of ``n`` bottleneck cells) that each output
+        cell of the grid depends on, walked back from the output: ``[(lo, hi) of stage 0 (the bottleneck), ...]``,
+        arrays over the ``n * 2**stages`` output cells."""
+        size = n * 2 ** len(self.deconv)
+        lo, hi = np.arange(size), np.arange(size)
+        ranges = []
+        for i in reversed(range(len(self.deconv))):
+            lo, hi = self._stage_inputs(lo, hi, n * 2 ** (i + 1))
+            ranges.append((lo, hi))
+        return ranges[::-1]
 
     @property
     def receptive_radius(self) -> int:
@@ -187,24 +262,11 @@ class ConvDecoder(nn.Module):
         floor((j + p) / 2)``; zero padding and clamping at the grid's edges cut them), and cached.
         """
         if self._receptive_radius is None:
-            k, p = self.deconv[0].kernel_size[0], self.deconv[0].padding[0]
             factor = 2 ** len(self.deconv)
             radius = 0
             for n in self.bottleneck[1:]:
-                size = n * factor
-                cells = np.arange(size)
-                lo, hi = cells.copy(), cells.copy()
-                for _ in self.deconv:
-                    if self.mode == "upsample":
-                        lo, hi = np.clip(lo + p - k + 1, 0, size - 1), np.clip(hi + p, 0, size - 1)
-                        size //= 2
-                        lo = np.floor(np.maximum((lo + 0.5) / 2 - 0.5, 0)).astype(int)
-                        hi = np.minimum(np.floor(np.maximum((hi + 0.5) / 2 - 0.5, 0)).astype(int) + 1, size - 1)
-                    else:
-                        size //= 2
-                        lo = np.clip(np.ceil((lo + p - k + 1) / 2).astype(int), 0, size - 1)
-                        hi = np.clip(np.floor((hi + p) / 2).astype(int), 0, size - 1)
-                center = cells // factor
+                lo, hi = self._read_ranges(n)[0]
+                center = np.arange(n * factor) // factor
                 radius = max(radius, int((center - lo).max()), int((hi - center).max()))
             self._receptive_radius = radius
         return self._receptive_radius
@@ -216,6 +278,156 @@ class ConvDecoder(nn.Module):
         size = 2 * self.receptive_radius + 1
         window = tuple(min(size, n) for n in self.bottleneck[1:])
         return window if 2 * math.prod(window) <= math.prod(self.bottleneck[1:]) else None
+
+    def _cell_windows(self, n: int) -> tuple[list[int], np.ndarray]:
+        """How :meth:`at_cells` decodes one output cell along an axis of ``n`` bottleneck cells: per stage the width
+        of its input window (one for all cells) and, per output cell, the window's start, ``(stages, n * 2**stages)``.
+
+        Each window holds the cells its output cell reads at that stage (:meth:`_read_ranges`) and lies inside
+        the grid and inside the previous stage's output window, so every cell read is exact: where a window's
+        edge is not the grid's, the cells next to it that the window's own padding spoils are not read. Cached.
+        """
+        if n not in self._cell_plans:
+            ranges = self._read_ranges(n)
+            widths = [int((hi - lo).max()) + 1 for lo, hi in ranges]
+            starts: list[np.ndarray] = []
+            lower, upper = np.zeros_like(ranges[0][0]), np.full_like(ranges[0][0], n)  # the bottleneck
+            for i, ((lo, hi), width) in enumerate(zip(ranges, widths)):
+                if i:  # stage i - 1's output window, which is inside the grid
+                    lower, upper = 2 * starts[-1], 2 * (starts[-1] + widths[i - 1])
+                start = np.maximum(np.minimum(lo, upper - width), lower)
+                if not bool(((start <= lo) & (hi < start + width) & (start + width <= upper)).all()):
+                    raise ValueError(f"no window plan for this decoder's stages (kernel "
+                                     f"{self.deconv[0].kernel_size[0]}, padding {self.deconv[0].padding[0]})")
+                starts.append(start)
+            self._cell_plans[n] = (widths, np.stack(starts))
+        return self._cell_plans[n]
+
+    @staticmethod
+    def _windows(h: torch.Tensor, rows: torch.Tensor, starts: list[torch.Tensor],
+                 widths: tuple[int, ...]) -> torch.Tensor:
+        """Windows of ``h`` (N, C, *size): window j is cut from row ``rows[j]`` at ``starts[axis][j]`` with
+        ``widths[axis]`` cells on each axis -> (len(rows), C, *widths), one indexing of ``h``'s unfolded view."""
+        for axis, width in enumerate(widths):
+            h = h.unfold(2 + axis, width, 1)
+        return h[(rows, slice(None), *starts)]
+
+    @staticmethod
+    def _flat_windows(size: tuple[int, ...], channels: torch.Tensor, starts: list[torch.Tensor],
+                      widths: tuple[int, ...]) -> torch.Tensor:
+        """Flat C-order indices, into a block (C, *size), of windows at ``starts`` per axis (k,) with ``widths``
+        cells per axis, ``channels`` kept: (k, len(channels) * prod(widths)), channel-major."""
+        offsets = torch.meshgrid(*[torch.arange(w, device=channels.device) for w in widths], indexing="ij")
+        position = sum((s[:, None] + o.reshape(-1)) * math.prod(size[axis + 1:])
+                       for axis, (s, o) in enumerate(zip(starts, offsets)))  # (k, prod(widths))
+        return (channels[:, None] * math.prod(size) + position[:, None, :]).reshape(len(starts[0]), -1)
+
+    def at_cells(self, x: torch.Tensor, cells: torch.Tensor, channel: int) -> torch.Tensor:
+        """Output ``channel`` at ``cells`` decoded from only the cells each one reads, equal to ``forward(x)`` there
+        to float round-off: ``x`` (N, r) decoder inputs, ``cells`` (N, m) flat output-grid indices -> (N, m).
+
+        Every stage runs on one window per output cell, as a product with its matrix on that window
+        (:meth:`_stage_matrix`), cropped after it to what the next stage reads (:meth:`_cell_windows`): on the
+        Burgers grid windows of 5, 4 and 3 cells in, against 128, 256 and 512 cells per stage of a whole decode.
+        Where every row reads the same cells (one sensor layout), few enough that their windows hold fewer
+        features than the bottleneck, the crops are folded into the matrices and the first stage into the last
+        dense layer, once per layout (:meth:`_layout`).
+        """
+        n, m = cells.shape
+        cells = cells.to(x.device)
+        widths = self._window_widths()
+        if m * self.deconv[0].out_channels * math.prod(widths[1]) <= math.prod(self.bottleneck) \
+                and bool((cells == cells[:1]).all()):
+            layout = self._layout(cells[0], channel)
+            if layout is not None:
+                return self._at_layout(x, layout)
+        return self._at_cells(x, cells, channel)
+
+    def _window_widths(self) -> list[tuple[int, ...]]:
+        """Per stage the input window's cells per axis (:meth:`_cell_windows`), then the output cell's (1, ...)."""
+        plans = [self._cell_windows(b) for b in self.bottleneck[1:]]
+        return [tuple(w[i] for w, _ in plans) for i in range(len(self.deconv))] + [(1,) * len(plans)]
+
+    def _window_starts(self, cells: torch.Tensor) -> list[list[torch.Tensor]]:
+        """Per stage, per axis, the window starts of flat output ``cells`` (k,); last, the cells' coordinates."""
+        grid = tuple(b * 2 ** len(self.deconv) for b in self.bottleneck[1:])
+        coords = torch.unravel_index(cells, grid)  # per axis (k,)
+        plans = [torch.as_tensor(self._cell_windows(b)[1], device=cells.device) for b in self.bottleneck[1:]]
+        return [[s[i][c] for s, c in zip(plans, coords)] for i in range(len(self.deconv))] + [list(coords)]
+
+    def _layout(self, cells: torch.Tensor, channel: int) -> tuple[int, list[tuple]] | None:
+        """:meth:`at_cells`' products for one layout of m ``cells``: ``(m, stages)``, per stage a matrix, a bias,
+        each cell's crop among the G distinct ones (None where G = 1) and G. The first stage's matrix keeps, per
+        cell, its window's columns (the crop) and is folded into the window's rows of the last dense layer,
+        (H, m K_1); a later stage's is (K_in, G K_out) (G = 1 for cells evenly spaced on the grid, as the paper
+        layouts are). None where a stage has no matrix. Cached per layout and weights (not while the weights
+        are being differentiated, nor inside torch.func's transforms)."""
+        key = None
+        if not (torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters())):
+            try:
+                key = (cells.cpu().numpy().tobytes(), channel, tuple(p._version for p in self.parameters()))
+            except RuntimeError:  # inside torch.func's transforms (autodiff Jacobians) a tensor has no data to read
+                key = None
+        if key in self._layouts:
+            self._layouts.move_to_end(key)
+            return self._layouts[key]
+        widths, starts = self._window_widths(), self._window_starts(cells)
+        matrices = [self._stage_matrix(i, w) for i, w in enumerate(widths[:-1])]
+        if any(stage is None for stage in matrices):
+            return None
+        device, last, stages = cells.device, self.fc[-1], []
+        for i, (matrix, bias) in enumerate(matrices):
+            kept = torch.arange(self.deconv[i].out_channels, device=device) if i + 1 < len(matrices) else \
+                torch.tensor([channel], device=device)
+            offsets = torch.stack([t - 2 * s for t, s in zip(starts[i + 1], starts[i])], 1)  # (m, axes)
+            distinct, group = (offsets, None) if i == 0 else torch.unique(offsets, dim=0, return_inverse=True)
+            crop = self._flat_windows(tuple(2 * w for w in widths[i]), kept, list(distinct.T), widths[i + 1])
+            matrix, bias = matrix[:, crop], bias[crop]  # (K_in, G, K_out), (G, K_out)
+            if i == 0:  # per cell: the window's rows of the last dense layer, times the cropped stage
+                columns = self._flat_windows(self.bottleneck[1:], torch.arange(self.bottleneck[0], device=device),
+                                             starts[0], widths[0])  # (m, K_0)
+                bias = (last.bias[columns][:, None, :] @ matrix.movedim(1, 0))[:, 0] + bias
+                matrix = (last.weight[columns].mT @ matrix.movedim(1, 0)).movedim(0, 1)  # (H, m, K_1)
+            stages.append((matrix.reshape(len(matrix), -1), bias.reshape(-1),
+                           None if i == 0 or len(distinct) == 1 else group, len(distinct)))
+        layout = (len(cells), stages)
+        if key is not None:
+            self._layouts[key] = layout
+            while len(self._layouts) > 8:
+                self._layouts.popitem(last=False)
+        return layout
+
+    def _at_layout(self, x: torch.Tensor, layout: tuple[int, list[tuple]]) -> torch.Tensor:
+        """:meth:`at_cells` for N rows that read one layout's m cells (:meth:`_layout`): the hidden dense layers,
+        then one product per stage over all N m rows -> (N, m)."""
+        m, stages = layout
+        hidden_net = self.fc[:-1]
+        h = hidden_net(x) if len(hidden_net) else x
+        n = len(h)
+        for i, (matrix, bias, group, n_crops) in enumerate(stages):
+            h = torch.addmm(bias, h.reshape(-1, len(matrix)), matrix)  # (N, m K_1), then (N m, G K_out)
+            if i and group is None:
+                h = h.view(n * m, -1)
+            elif i:  # each cell's own crop
+                h = h.view(n, m, n_crops, -1)[:, torch.arange(m, device=h.device), group].reshape(n * m, -1)
+            if i + 1 < len(stages):
+                h = self.act(h)
+        return h.view(n, m)
+
+    def _at_cells(self, x: torch.Tensor, cells: torch.Tensor, channel: int) -> torch.Tensor:
+        """:meth:`at_cells` for any cells: the dense layers whole, then the windows cut from their output and
+        from every stage's (one indexing of an unfolded view each)."""
+        n, m = cells.shape
+        widths, starts = self._window_widths(), self._window_starts(cells.reshape(-1))
+        features = self.fc(x).view(n, *self.bottleneck)
+        h = self._windows(features, torch.arange(n, device=x.device).repeat_interleave(m), starts[0], widths[0])
+        every = torch.arange(n * m, device=x.device)
+        for i in range(len(self.deconv)):
+            h = self._window_stage(i, h)
+            if i + 1 == len(self.deconv):
+                h = h[:, channel:channel + 1]
+            h = self._windows(h, every, [t - 2 * s for t, s in zip(starts[i + 1], starts[i])], widths[i + 1])
+        return h.reshape(n, m)
 
     def sensor_jacobian(self, x: torch.Tensor, cells: torch.Tensor, channel: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Output ``channel`` at ``cells`` and its Jacobian with respect to the input, decoding only the window
@@ -237,11 +449,8 @@ class ConvDecoder(nn.Module):
         coords = torch.unravel_index(cells.to(device), self.grid)  # per axis (N, m)
         starts = [(c // factor - self.receptive_radius).clamp(0, b - w) for c, b, w in zip(coords, bottleneck, window)]
         # Flat bottleneck indices of every window (channel-major, then the window cells in C order): (N, m, K).
-        offsets = torch.meshgrid(*[torch.arange(w, device=device) for w in window], indexing="ij")
-        strides = [math.prod(bottleneck[i + 1:]) for i in range(len(bottleneck))]
-        position = sum((s[..., None] + o.reshape(-1)) * st for s, o, st in zip(starts, offsets, strides))
-        index = (torch.arange(channels, device=device)[:, None] * math.prod(bottleneck)
-                 + position[..., None, :]).reshape(n, m, -1)
+        index = self._flat_windows(tuple(bottleneck), torch.arange(channels, device=device),
+                                   [s.reshape(-1) for s in starts], window).reshape(n, m, -1)
         hidden_net, last = self.fc[:-1], self.fc[-1]
         with torch.no_grad():
             hidden = hidden_net(x)

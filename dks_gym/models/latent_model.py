@@ -7,7 +7,7 @@ Every model is a ``torch.nn.Module`` with attributes ``benchmark``, ``kind`` ("k
     decode(z, mu)            z (B, r)                           -> x (B, C, *grid) physical
     forecast(z, mu)          z_k (B, r)                         -> z_{k+1} (B, r)        (Eq. 5)
     forecast_jacobian(z, mu)                                    -> dF/dz (B, r, r)
-    observe(z, mu, sensors, channel)                            -> S(decode(z)) (B, m)   (Eq. 12)
+    observe(z, mu, sensors, channel)    sensors (m,) or (B, m)  -> S(decode(z)) (B, m)   (Eq. 12)
     rollout(z0, mu, n_steps)                                    -> (B, n_steps + 1, r)
     filter_forecast_jacobian(mu)            dF/dz as the filters take it: a constant (B, r, r) or a callable
     filter_observe_jacobian(mu, rows, channel)  dh/dz as the filters take it: None (autodiff) or a callable
@@ -201,17 +201,23 @@ class LatentModel(nn.Module):
         return torch.stack(cols, dim=-1)
 
     def observe(self, z: ArrayLike, mu: ArrayLike, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
-        """h(z) = S(decode(z)): the decoded ``channel`` (index or name) at flat C-order grid ``sensors``, (B, m)."""
-        idx = self._sensor_index(sensors)
-        c = self._channel_index(channel)
-        return self.decode(z, mu).flatten(2)[:, c, idx]
+        """h(z) = S(decode(z)): the decoded ``channel`` (index or name) at flat C-order grid ``sensors``, one layout
+        (m,) for every row or one per row (B, m), -> (B, m)."""
+        z = self._latent(z)
+        idx = self._sensor_index(sensors, z.shape[0])
+        fields = self.decode(z, mu).flatten(2)[:, self._channel_index(channel)]
+        return fields[:, idx] if idx.ndim == 1 else fields.gather(1, idx)
 
-    def _sensor_index(self, sensors: ArrayLike) -> torch.Tensor:
+    def _sensor_index(self, sensors: ArrayLike, batch: int | None = None) -> torch.Tensor:
+        """``sensors`` as a long tensor, checked: one layout (m,), or one per row (batch, m) where ``batch`` is
+        given."""
         idx = torch.as_tensor(np.asarray(sensors), dtype=torch.long, device=self.stats_mean.device)
         n_cells = int(np.prod(self.grid))
-        if idx.ndim != 1 or idx.numel() == 0 or int(idx.min()) < 0 or int(idx.max()) >= n_cells:
+        rows = idx.ndim == 2 and batch is not None and idx.shape[0] == batch
+        if not (idx.ndim == 1 or rows) or idx.numel() == 0 or int(idx.min()) < 0 or int(idx.max()) >= n_cells:
+            per_row = f", or one such layout per row ({batch}, m)" if batch is not None else ""
             raise ValueError(
-                f"sensors must be a non-empty 1D array of flat C-order grid indices in [0, {n_cells}), "
+                f"sensors must be a non-empty 1D array of flat C-order grid indices in [0, {n_cells}){per_row}, "
                 f"got {np.asarray(sensors)!r}"
             )
         return idx
@@ -339,6 +345,19 @@ class NeuralLatentModel(LatentModel):
             return (values * std + mean).to(z.dtype), (jac * std).to(z.dtype)  # decode() de-normalizes: x std + mean
 
         return jacobian
+
+    def observe(self, z: ArrayLike, mu: ArrayLike, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
+        """h(z) (see :meth:`LatentModel.observe`), decoded from only the cells the sensors read
+        (:meth:`ConvDecoder.at_cells`) where the decoder's receptive field is a small part of the bottleneck (the
+        Burgers and sphere grids; the 2D grids decode the whole field): the same numbers to float round-off."""
+        if self.decoder.window() is None:
+            return super().observe(z, mu, sensors, channel)
+        z = self._latent(z)
+        idx = self._sensor_index(sensors, z.shape[0])
+        c = self._channel_index(channel)
+        x = z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0]))
+        values = self.decoder.at_cells(x, idx.expand(z.shape[0], -1), c).to(z.dtype)
+        return values * self.stats_std[c].to(z.dtype) + self.stats_mean[c].to(z.dtype)  # as decode() de-normalizes
 
     def encode(self, x: ArrayLike, mu: ArrayLike) -> torch.Tensor:
         """z = E_phi(x, mu) + e_omega(mu) from physical fields (B, C, *grid)."""

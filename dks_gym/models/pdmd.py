@@ -410,15 +410,24 @@ class PDMD(LatentModel):
     def observation_matrix(self, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
         """J = S diag(std) U_r restricted to ``channel`` at ``sensors``, (m, r): h(z) = J z + mean[channel]."""
         self._require_fitted()
-        c = self._channel_index(channel)
-        rows = c * math.prod(self.grid) + self._sensor_index(sensors)
-        return self.basis[rows] * self.stats_std[c]
+        return self._observation_rows(self._sensor_index(sensors), self._channel_index(channel))
+
+    def _observation_rows(self, idx: torch.Tensor, c: int) -> torch.Tensor:
+        """The rows of diag(std) U_r of channel ``c`` at cells ``idx`` (any shape) -> (*idx.shape, r)."""
+        return self.basis[c * math.prod(self.grid) + idx] * self.stats_std[c]
 
     def observe(self, z: ArrayLike, mu: ArrayLike, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
-        """h(z) = S U_r z de-normalized, without forming the full field, (B, m)."""
+        """h(z) = S U_r z de-normalized, without forming the full field, (B, m); ``sensors`` one layout (m,) or
+        one per row (B, m) (rows of the basis per row where the layouts differ)."""
+        self._require_fitted()
         z = self._latent(z)
-        j = self.observation_matrix(sensors, channel).to(z.dtype)
-        return z @ j.T + self.stats_mean[self._channel_index(channel)].to(z.dtype)
+        idx = self._sensor_index(sensors, z.shape[0])
+        if idx.ndim == 2 and bool((idx == idx[:1]).all()):
+            idx = idx[0]
+        c = self._channel_index(channel)
+        J = self._observation_rows(idx, c)  # (m, r) or (B, m, r)
+        y = z @ J.to(z.dtype).T if idx.ndim == 1 else (J.to(z.dtype) @ z[:, :, None])[..., 0]
+        return y + self.stats_mean[c].to(z.dtype)
 
     # Persistence ----------------------------------------------------------------------------------
     def get_extra_state(self) -> torch.Tensor:
