@@ -47,7 +47,7 @@ def ekf_forecast(
     z_a, P_a = state.mean, state.cov
     batch, r = z_a.shape
     z_f, F = forecast_with_jacobian(dynamics, z_a, jacobian_method)  # Eq. 13, F at the analysis state
-    P_f = symmetrize(F @ P_a @ F.mT + as_covariance(Q, batch, r, like=z_a, name="Q"))  # Eq. 14
+    P_f = symmetrize(torch.baddbmm(as_covariance(Q, batch, r, like=z_a, name="Q"), F @ P_a, F.mT))  # Eq. 14
     if check:
         raise_if_diverged(nonfinite_elements(z_f, P_f), "EKF forecast")
     return GaussianState(z_f, P_f), F
@@ -82,12 +82,12 @@ def ekf_update(
         h = torch.where(mask, h, y)
 
     PJt = P_f @ J.mT
-    L, singular = cholesky_or_nan(symmetrize(J @ PJt + R_mat))
-    K = torch.cholesky_solve(PJt.mT, L).mT  # Eq. 15: K^T = S^{-1} J P_f since P_f is symmetric
-    z_a = z_f + (K @ (y - h)[..., None])[..., 0]  # Eq. 16
-    I_KJ = -(K @ J)
-    I_KJ.diagonal(dim1=-2, dim2=-1).add_(1.0)
-    P_a = symmetrize(I_KJ @ P_f @ I_KJ.mT + K @ R_mat @ K.mT)  # Eq. 17, Joseph form
+    L, singular = cholesky_or_nan(symmetrize(torch.baddbmm(R_mat, J, PJt)))
+    K = PJt @ torch.cholesky_inverse(L)  # Eq. 15, S^{-1} from its Cholesky factor
+    z_a = torch.baddbmm(z_f[..., None], K, (y - h)[..., None])[..., 0]  # Eq. 16
+    eye = torch.eye(z_f.shape[1], dtype=K.dtype, device=K.device)
+    I_KJ = torch.baddbmm(eye, K, J, alpha=-1.0)
+    P_a = symmetrize((K @ R_mat @ K.mT).baddbmm_(I_KJ @ P_f, I_KJ.mT))  # Eq. 17, Joseph form
     if check:
         raise_if_diverged(nonfinite_elements(z_a, P_a) | singular, "EKF update")
     return GaussianState(z_a, P_a), K
