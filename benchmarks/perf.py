@@ -16,17 +16,21 @@ keeps every rep's median and the ratio. Sections:
 - ``vector``: the batched vector env (``uncertainty=False``, as for RL) at N envs against N separate
   ``LatentFilter`` envs, per env-step, EKF and EnKF (n = 20);
 - ``algebra``: the EKF update with a linear model against filterpy's ``KalmanFilter`` at batch 1 and 256;
+- ``torchkf``: one linear predict and Joseph-form update (r = 32, m = 16, float32) at B = 256 and 1024 against
+  torch-kf (a batched PyTorch Kalman filter, the dev extra), and the time of each of our safety checks;
 - ``training``: one Adam step of the Koopman model (lite at batch 32, paper at batch 256), FLOPs counted by
   ``torch.utils.flop_counter`` and the achieved rate against the matmul peak, in training mode (how dks-gym
   trains) and with the decoder's inference formulation (what switching training over to it would give).
 
     OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --only torchkf   # that section alone, the others kept in the JSON
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -37,6 +41,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 import torch
+from torch import Tensor
 
 import dks_gym  # noqa: F401  (registers the env ids)
 from dks_gym.assimilation import FilterConfig
@@ -45,9 +50,12 @@ from dks_gym.dataset import generate_dataset, load_dataset
 from dks_gym.envs.noise import measurement_noise
 from dks_gym.filters import EKF, LatentDynamics
 from dks_gym.filters.dynamics import GaussianState
-from dks_gym.filters.ekf import ekf_forecast, ekf_update
+from dks_gym.filters.batch_elements import nonfinite_elements
+from dks_gym.filters.covariance import as_covariance, symmetrize
+from dks_gym.filters.ekf import ekf_forecast, ekf_update, joseph_covariance, kalman_gain
 from dks_gym.filters.enkf import enkf_forecast, enkf_update
 from dks_gym.filters.jacobians import forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
+from dks_gym.filters.measurements import check_measurement
 from dks_gym.models import build_model
 from dks_gym.models.loss import training_loss
 from dks_gym.wrappers import LatentFilter, LatentFilterVectorEnv
@@ -333,6 +341,90 @@ def algebra_section(reps: int, inner: int) -> list[dict[str, Any]]:
     return rows
 
 
+def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]:
+    """A linear predict and Joseph-form update (r = 32, m = 16, float32, constant F and H, Q = 1e-4 I, R = 0.04 I):
+    ours (``ekf_forecast`` + ``ekf_update``, every check on, and with the divergence checks off) against torch-kf's
+    ``KalmanFilter(joseph_update=True)``; beside them each of our safety checks timed alone on the step's own
+    tensors, and the forms we chose against the cheaper ones (the Joseph form against ``P_f - K J P_f``; the gain
+    from the Cholesky factor with its failure flags against torch-kf's LU inverse)."""
+    try:
+        import torch_kf
+    except ImportError:
+        return {"skipped": "torch-kf is not installed; it is in the dev extra: pip install -e '.[dev]'"}
+    from importlib.metadata import version
+
+    rng = np.random.default_rng(0)
+    r, m, Q, R = 32, 16, 1e-4, 0.04
+    F = torch.as_tensor(np.linalg.qr(rng.standard_normal((r, r)))[0] * 0.99, dtype=torch.float32)
+    H = torch.as_tensor(rng.standard_normal((m, r)), dtype=torch.float32)
+    dyn = LatentDynamics(lambda x: x @ F.T, lambda x: x @ H.T, forecast_jacobian=F, observe_jacobian=H)
+    kf = torch_kf.KalmanFilter(F, H, Q * torch.eye(r), R * torch.eye(m), joseph_update=True)
+    rows = []
+    loadavg_start = list(os.getloadavg())
+    for batch in batches:
+        A = torch.as_tensor(rng.standard_normal((batch, r, r)), dtype=torch.float32)
+        z = torch.as_tensor(rng.standard_normal((batch, r)), dtype=torch.float32)
+        y = torch.as_tensor(rng.standard_normal((batch, m)), dtype=torch.float32)
+        state = GaussianState(z, A @ A.mT / r + 0.1 * torch.eye(r))
+        theirs_state = torch_kf.GaussianState(z[..., None], state.cov)
+
+        def ours(check: bool = True) -> GaussianState:
+            forecast, _ = ekf_forecast(state, dyn, Q, check=check)
+            return ekf_update(forecast, y, dyn, R, check=check)[0]
+
+        def theirs() -> Any:
+            return kf.update(kf.predict(theirs_state), y[..., None])
+
+        # The step's own intermediate tensors, for timing its pieces alone.
+        forecast, _ = ekf_forecast(state, dyn, Q)
+        z_f, P_f = forecast.mean, forecast.cov
+        J, R_mat = H.expand(batch, m, r), as_covariance(R, batch, m, like=z, name="R")
+        K, _ = kalman_gain(P_f, J, R_mat)
+        PJt = P_f @ J.mT
+        S = torch.baddbmm(R_mat, J, PJt)  # before its symmetrization
+        analysis = ours()
+
+        def symmetrizations() -> None:  # P_f, S and P_a, as the step symmetrizes them
+            symmetrize(P_f), symmetrize(S), symmetrize(analysis.cov)
+
+        def gain_lu_inverse() -> Tensor:  # torch-kf's gain: S inverted by LU, no symmetrization, no failure flag
+            PJt = P_f @ J.mT
+            return PJt @ torch.linalg.inv(torch.baddbmm(R_mat, J, PJt))
+
+        times = interleaved({
+            "ours": ours, "ours_without_divergence_checks": lambda: ours(False), "torchkf": theirs,
+            "symmetrizations": symmetrizations,
+            "divergence_checks": lambda: (nonfinite_elements(z_f, P_f),
+                                          nonfinite_elements(analysis.mean, analysis.cov)),
+            "measurement_check": lambda: check_measurement(y, batch, m, like=z),
+            "joseph_covariance": lambda: joseph_covariance(P_f, K, J, R_mat, diagonal_R=True),
+            "simple_covariance": lambda: torch.baddbmm(P_f, K, PJt.mT, alpha=-1.0),
+            "gain_cholesky_flagged": lambda: kalman_gain(P_f, J, R_mat),
+            "gain_lu_inverse": gain_lu_inverse,
+        }, reps, inner)
+        ref = theirs()
+        torchkf_ms = med(times["torchkf"])
+        costs = {
+            "symmetrizations": med(times["symmetrizations"]),
+            "divergence_checks": med(times["divergence_checks"]),
+            "measurement_check": med(times["measurement_check"]),
+            "joseph_over_simple_form": med(times["joseph_covariance"]) - med(times["simple_covariance"]),
+            "cholesky_gain_over_lu_inverse": med(times["gain_cholesky_flagged"]) - med(times["gain_lu_inverse"]),
+        }
+        rows.append({
+            "batch": batch, "ms": times,
+            "ours_over_torchkf": med(times["ours"]) / torchkf_ms,
+            "ours_over_torchkf_per_rep": [a / b for a, b in zip(times["ours"], times["torchkf"])],
+            "unchecked_over_torchkf": med(times["ours_without_divergence_checks"]) / torchkf_ms,
+            "check_ms": costs, "check_fraction_of_torchkf": {k: v / torchkf_ms for k, v in costs.items()},
+            "max_relative_difference": {
+                "mean": float((analysis.mean - ref.mean[..., 0]).abs().max() / ref.mean.abs().max()),
+                "cov": float((analysis.cov - ref.covariance).abs().max() / ref.covariance.abs().max())},
+        })
+    return {"torch_kf": version("torch-kf"), "torch_threads": torch.get_num_threads(), "rows": rows,
+            "loadavg_start": loadavg_start, "loadavg_end": list(os.getloadavg())}
+
+
 def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list[dict[str, Any]]:
     """One Adam step's achieved FLOP rate against the matmul peak (Koopman, T = 1)."""
     from torch.utils.flop_counter import FlopCounterMode
@@ -381,39 +473,54 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--sizes", nargs="+", type=int, default=[1, 16, 64, 256])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, one rep: checks that every section runs")
+    parser.add_argument("--only", nargs="+", metavar="SECTION",
+                        help="run these sections and replace their entries in --out, keeping the others")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "perf.json"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     reps, inner, batch, sizes, steps = args.reps, 10, 256, args.sizes, 20
-    presets = ["lite", "paper"]
+    presets, kf_batches = ["lite", "paper"], [256, 1024]
     if args.quick:
-        reps, inner, batch, sizes, steps, presets = 1, 1, 4, [1, 4], 2, ["lite"]
-    generate_dataset("burgers", "small", progress=False)
-    ds = load_dataset("burgers", "small")
-    model = build_model("burgers", "koopman", 32, "lite", dataset=ds, seed=0)
-    result: dict[str, Any] = {"machine": machine(args.threads)}
-    peak = matmul_peak(reps)
-    result["machine"]["matmul_gflops"] = peak["gflops"]
+        reps, inner, batch, sizes, steps, presets, kf_batches = 1, 1, 4, [1, 4], 2, ["lite"], [4, 16]
+
+    @functools.cache
+    def data() -> tuple[Any, Any]:
+        """The small Burgers data and the untrained lite Koopman model (built once, for the sections using them)."""
+        generate_dataset("burgers", "small", progress=False)
+        ds = load_dataset("burgers", "small")
+        return ds, build_model("burgers", "koopman", 32, "lite", dataset=ds, seed=0)
+
     sections = {
         "env": lambda: env_section(reps, 99 if not args.quick else 5),
-        "jacobian": lambda: jacobian_section(model, batch, reps, inner),
-        "ekf": lambda: ekf_section(model, batch, reps, inner),
-        "enkf": lambda: enkf_section(model, batch, 20, reps, inner),
+        "jacobian": lambda: jacobian_section(data()[1], batch, reps, inner),
+        "ekf": lambda: ekf_section(data()[1], batch, reps, inner),
+        "enkf": lambda: enkf_section(data()[1], batch, 20, reps, inner),
         "algebra": lambda: algebra_section(reps, inner),
-        "vector": lambda: vector_section(model, sizes, "ekf", reps, steps)
-        + vector_section(model, sizes, "enkf", reps, steps),
-        "training": lambda: training_section(ds, presets, reps, 1 if args.quick else 3),
+        # Small and quick: three times the reps, for ratios near 1 on a loaded machine.
+        "torchkf": lambda: torchkf_section(kf_batches, 3 * reps, inner),
+        "vector": lambda: vector_section(data()[1], sizes, "ekf", reps, steps)
+        + vector_section(data()[1], sizes, "enkf", reps, steps),
+        "training": lambda: training_section(data()[0], presets, reps, 1 if args.quick else 3),
     }
+    out = Path(args.out)
+    if args.only:
+        unknown = sorted(set(args.only) - set(sections))
+        if unknown:
+            parser.error(f"unknown section(s) {unknown}; choose from {list(sections)}")
+        result = json.loads(out.read_text()) if out.exists() else {"machine": machine(args.threads)}
+        sections = {name: run for name, run in sections.items() if name in args.only}
+    else:
+        result = {"machine": machine(args.threads)}
+        result["machine"]["matmul_gflops"] = matmul_peak(reps)["gflops"]
     for name, run in sections.items():
         tic = time.perf_counter()
         result[name] = run()
         print(f"{name}: {time.perf_counter() - tic:.1f} s", flush=True)
-    result["machine"]["loadavg_end"] = list(os.getloadavg())
-    out = Path(args.out)
+    if not args.only:
+        result["machine"]["loadavg_end"] = list(os.getloadavg())
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {out}")
-
 
 if __name__ == "__main__":
     main()
