@@ -52,7 +52,7 @@ from dks_gym.filters import EKF, LatentDynamics
 from dks_gym.filters.dynamics import GaussianState
 from dks_gym.filters.batch_elements import nonfinite_elements
 from dks_gym.filters.covariance import as_covariance, symmetrize
-from dks_gym.filters.ekf import ekf_forecast, ekf_update, joseph_covariance, kalman_gain
+from dks_gym.filters.ekf import ekf_forecast, ekf_update
 from dks_gym.filters.enkf import enkf_forecast, enkf_update
 from dks_gym.filters.jacobians import forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
 from dks_gym.filters.measurements import check_measurement
@@ -341,12 +341,55 @@ def algebra_section(reps: int, inner: int) -> list[dict[str, Any]]:
     return rows
 
 
+def check_pieces(state: GaussianState, dyn: LatentDynamics, y: Tensor, Q: float, R: float) -> dict[str, Callable]:
+    """Our safety checks and chosen forms alone, on one step's own tensors: the three symmetrizations (P_f, S,
+    P_a), the two divergence checks, the measurement check, the Joseph form and its cheaper alternative
+    ``P_f - K J P_f``, the gain from the Cholesky factor with its failure flags and torch-kf's LU inverse."""
+    from dks_gym.filters.ekf import joseph_covariance, kalman_gain  # ImportError in a tree from before them
+
+    batch, m = state.mean.shape[0], y.shape[1]
+    forecast, _ = ekf_forecast(state, dyn, Q)
+    z_f, P_f = forecast.mean, forecast.cov
+    _, J = observe_with_jacobian(dyn, z_f)
+    R_mat = as_covariance(R, batch, m, like=z_f, name="R")
+    K, _ = kalman_gain(P_f, J, R_mat)
+    PJt = P_f @ J.mT
+    S = torch.baddbmm(R_mat, J, PJt)  # before its symmetrization
+    analysis, _ = ekf_update(forecast, y, dyn, R)
+
+    def symmetrizations() -> None:
+        symmetrize(P_f), symmetrize(S), symmetrize(analysis.cov)
+
+    def gain_lu_inverse() -> Tensor:  # torch-kf's gain: S inverted by LU, no symmetrization, no failure flag
+        PJt = P_f @ J.mT
+        return PJt @ torch.linalg.inv(torch.baddbmm(R_mat, J, PJt))
+
+    return {
+        "symmetrizations": symmetrizations,
+        "divergence_checks": lambda: (nonfinite_elements(z_f, P_f), nonfinite_elements(analysis.mean, analysis.cov)),
+        "measurement_check": lambda: check_measurement(y, batch, m, like=z_f),
+        "joseph_covariance": lambda: joseph_covariance(P_f, K, J, R_mat, diagonal_R=True),
+        "simple_covariance": lambda: torch.baddbmm(P_f, K, PJt.mT, alpha=-1.0),
+        "gain_cholesky_flagged": lambda: kalman_gain(P_f, J, R_mat),
+        "gain_lu_inverse": gain_lu_inverse,
+    }
+
+
+def check_costs(times: dict[str, list[float]]) -> dict[str, float]:
+    """Each check's ms (median): a piece's time, or a chosen form's time over the cheaper form's."""
+    if "symmetrizations" not in times:
+        return {}
+    return {"symmetrizations": med(times["symmetrizations"]), "divergence_checks": med(times["divergence_checks"]),
+            "measurement_check": med(times["measurement_check"]),
+            "joseph_over_simple_form": med(times["joseph_covariance"]) - med(times["simple_covariance"]),
+            "cholesky_gain_over_lu_inverse": med(times["gain_cholesky_flagged"]) - med(times["gain_lu_inverse"])}
+
+
 def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]:
     """A linear predict and Joseph-form update (r = 32, m = 16, float32, constant F and H, Q = 1e-4 I, R = 0.04 I):
     ours (``ekf_forecast`` + ``ekf_update``, every check on, and with the divergence checks off) against torch-kf's
-    ``KalmanFilter(joseph_update=True)``; beside them each of our safety checks timed alone on the step's own
-    tensors, and the forms we chose against the cheaper ones (the Joseph form against ``P_f - K J P_f``; the gain
-    from the Cholesky factor with its failure flags against torch-kf's LU inverse)."""
+    ``KalmanFilter(joseph_update=True)``, and beside them :func:`check_pieces`. Run against a tree from before
+    ``kalman_gain`` and ``joseph_covariance`` existed, it times the steps alone."""
     try:
         import torch_kf
     except ImportError:
@@ -375,42 +418,15 @@ def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]
         def theirs() -> Any:
             return kf.update(kf.predict(theirs_state), y[..., None])
 
-        # The step's own intermediate tensors, for timing its pieces alone.
-        forecast, _ = ekf_forecast(state, dyn, Q)
-        z_f, P_f = forecast.mean, forecast.cov
-        J, R_mat = H.expand(batch, m, r), as_covariance(R, batch, m, like=z, name="R")
-        K, _ = kalman_gain(P_f, J, R_mat)
-        PJt = P_f @ J.mT
-        S = torch.baddbmm(R_mat, J, PJt)  # before its symmetrization
-        analysis = ours()
-
-        def symmetrizations() -> None:  # P_f, S and P_a, as the step symmetrizes them
-            symmetrize(P_f), symmetrize(S), symmetrize(analysis.cov)
-
-        def gain_lu_inverse() -> Tensor:  # torch-kf's gain: S inverted by LU, no symmetrization, no failure flag
-            PJt = P_f @ J.mT
-            return PJt @ torch.linalg.inv(torch.baddbmm(R_mat, J, PJt))
-
-        times = interleaved({
-            "ours": ours, "ours_without_divergence_checks": lambda: ours(False), "torchkf": theirs,
-            "symmetrizations": symmetrizations,
-            "divergence_checks": lambda: (nonfinite_elements(z_f, P_f),
-                                          nonfinite_elements(analysis.mean, analysis.cov)),
-            "measurement_check": lambda: check_measurement(y, batch, m, like=z),
-            "joseph_covariance": lambda: joseph_covariance(P_f, K, J, R_mat, diagonal_R=True),
-            "simple_covariance": lambda: torch.baddbmm(P_f, K, PJt.mT, alpha=-1.0),
-            "gain_cholesky_flagged": lambda: kalman_gain(P_f, J, R_mat),
-            "gain_lu_inverse": gain_lu_inverse,
-        }, reps, inner)
-        ref = theirs()
+        try:
+            pieces = check_pieces(state, dyn, y, Q, R)
+        except ImportError:
+            pieces = {}
+        times = interleaved({"ours": ours, "ours_without_divergence_checks": lambda: ours(False), "torchkf": theirs,
+                             **pieces}, reps, inner)
+        analysis, ref = ours(), theirs()
         torchkf_ms = med(times["torchkf"])
-        costs = {
-            "symmetrizations": med(times["symmetrizations"]),
-            "divergence_checks": med(times["divergence_checks"]),
-            "measurement_check": med(times["measurement_check"]),
-            "joseph_over_simple_form": med(times["joseph_covariance"]) - med(times["simple_covariance"]),
-            "cholesky_gain_over_lu_inverse": med(times["gain_cholesky_flagged"]) - med(times["gain_lu_inverse"]),
-        }
+        costs = check_costs(times)
         rows.append({
             "batch": batch, "ms": times,
             "ours_over_torchkf": med(times["ours"]) / torchkf_ms,
@@ -423,7 +439,6 @@ def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]
         })
     return {"torch_kf": version("torch-kf"), "torch_threads": torch.get_num_threads(), "rows": rows,
             "loadavg_start": loadavg_start, "loadavg_end": list(os.getloadavg())}
-
 
 def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list[dict[str, Any]]:
     """One Adam step's achieved FLOP rate against the matmul peak (Koopman, T = 1)."""
@@ -496,8 +511,8 @@ def main() -> None:
         "ekf": lambda: ekf_section(data()[1], batch, reps, inner),
         "enkf": lambda: enkf_section(data()[1], batch, 20, reps, inner),
         "algebra": lambda: algebra_section(reps, inner),
-        # Small and quick: three times the reps, for ratios near 1 on a loaded machine.
-        "torchkf": lambda: torchkf_section(kf_batches, 3 * reps, inner),
+        # Small and quick: five times the reps of a third the calls, each pair close in time, for ratios near 1.
+        "torchkf": lambda: torchkf_section(kf_batches, 5 * reps, max(inner // 3, 1)),
         "vector": lambda: vector_section(data()[1], sizes, "ekf", reps, steps)
         + vector_section(data()[1], sizes, "enkf", reps, steps),
         "training": lambda: training_section(data()[0], presets, reps, 1 if args.quick else 3),
