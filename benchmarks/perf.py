@@ -385,6 +385,17 @@ def check_costs(times: dict[str, list[float]]) -> dict[str, float]:
             "cholesky_gain_over_lu_inverse": med(times["gain_cholesky_flagged"]) - med(times["gain_lu_inverse"])}
 
 
+def page_faults_per_call(fn: Callable[[], Any], calls: int = 20) -> float:
+    """Minor page faults per call of ``fn``: memory the allocator gave back to the OS and maps again."""
+    import resource
+
+    fn()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(calls):
+        fn()
+    return (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / calls
+
+
 def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]:
     """A linear predict and Joseph-form update (r = 32, m = 16, float32, constant F and H, Q = 1e-4 I, R = 0.04 I):
     ours (``ekf_forecast`` + ``ekf_update``, every check on, and with the divergence checks off) against torch-kf's
@@ -424,6 +435,7 @@ def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]
             pieces = {}
         times = interleaved({"ours": ours, "ours_without_divergence_checks": lambda: ours(False), "torchkf": theirs,
                              **pieces}, reps, inner)
+        faults = {"ours": page_faults_per_call(ours), "torchkf": page_faults_per_call(theirs)}
         analysis, ref = ours(), theirs()
         torchkf_ms = med(times["torchkf"])
         costs = check_costs(times)
@@ -432,12 +444,15 @@ def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]
             "ours_over_torchkf": med(times["ours"]) / torchkf_ms,
             "ours_over_torchkf_per_rep": [a / b for a, b in zip(times["ours"], times["torchkf"])],
             "unchecked_over_torchkf": med(times["ours_without_divergence_checks"]) / torchkf_ms,
+            "minor_page_faults_per_call": faults,
             "check_ms": costs, "check_fraction_of_torchkf": {k: v / torchkf_ms for k, v in costs.items()},
             "max_relative_difference": {
                 "mean": float((analysis.mean - ref.mean[..., 0]).abs().max() / ref.mean.abs().max()),
                 "cov": float((analysis.cov - ref.covariance).abs().max() / ref.covariance.abs().max())},
         })
-    return {"torch_kf": version("torch-kf"), "torch_threads": torch.get_num_threads(), "rows": rows,
+    malloc = {k: os.environ.get(k) for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")}
+    return {"torch_kf": version("torch-kf"), "torch_threads": torch.get_num_threads(), "glibc_malloc_env": malloc,
+            "rows": rows,
             "loadavg_start": loadavg_start, "loadavg_end": list(os.getloadavg())}
 
 def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list[dict[str, Any]]:

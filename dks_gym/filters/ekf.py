@@ -108,7 +108,8 @@ def ekf_update(
 
     K, singular = kalman_gain(P_f, J, R_mat)
     z_a = torch.baddbmm(z_f[..., None], K, (y - h)[..., None])[..., 0]  # Eq. 16
-    P_a = joseph_covariance(P_f, K, J, R_mat, diagonal_R=torch.as_tensor(R).ndim <= 1)
+    diagonal_R = isinstance(R, (int, float)) or (isinstance(R, Tensor) and R.ndim <= 1)  # scalar or (B,)
+    P_a = joseph_covariance(P_f, K, J, R_mat, diagonal_R=diagonal_R)
     if check:
         raise_if_diverged(nonfinite_elements(z_a, P_a) | singular, "EKF update")
     return GaussianState(z_a, P_a), K
