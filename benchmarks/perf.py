@@ -51,7 +51,7 @@ from dks_gym.envs.noise import measurement_noise
 from dks_gym.filters import EKF, LatentDynamics
 from dks_gym.filters.dynamics import GaussianState
 from dks_gym.filters.batch_elements import nonfinite_elements
-from dks_gym.filters.covariance import as_covariance, symmetrize
+from dks_gym.filters.covariance import as_covariance, cholesky_or_nan, symmetrize
 from dks_gym.filters.ekf import ekf_forecast, ekf_update
 from dks_gym.filters.enkf import enkf_forecast, enkf_update
 from dks_gym.filters.jacobians import forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
@@ -344,7 +344,9 @@ def algebra_section(reps: int, inner: int) -> list[dict[str, Any]]:
 def check_pieces(state: GaussianState, dyn: LatentDynamics, y: Tensor, Q: float, R: float) -> dict[str, Callable]:
     """Our safety checks and chosen forms alone, on one step's own tensors: the three symmetrizations (P_f, S,
     P_a), the two divergence checks, the measurement check, the Joseph form and its cheaper alternative
-    ``P_f - K J P_f``, the gain from the Cholesky factor with its failure flags and torch-kf's LU inverse."""
+    ``P_f - K J P_f``, the gain from the Cholesky factor with its failure flags and torch-kf's LU inverse; and
+    the forms these replaced: the gain by ``cholesky_solve``, the divergence checks by ``isfinite`` on every
+    entry."""
     from dks_gym.filters.ekf import joseph_covariance, kalman_gain  # ImportError in a tree from before them
 
     batch, m = state.mean.shape[0], y.shape[1]
@@ -364,6 +366,14 @@ def check_pieces(state: GaussianState, dyn: LatentDynamics, y: Tensor, Q: float,
         PJt = P_f @ J.mT
         return PJt @ torch.linalg.inv(torch.baddbmm(R_mat, J, PJt))
 
+    def gain_cholesky_solve() -> Tensor:  # the gain before: a Cholesky solve for the r right-hand sides
+        PJt = P_f @ J.mT
+        return torch.cholesky_solve(PJt.mT, cholesky_or_nan(symmetrize(torch.baddbmm(R_mat, J, PJt)))[0]).mT
+
+    def isfinite_every_entry() -> None:  # the divergence checks before
+        for t in (z_f, P_f, analysis.mean, analysis.cov):
+            ~torch.isfinite(t).flatten(1).all(1)
+
     return {
         "symmetrizations": symmetrizations,
         "divergence_checks": lambda: (nonfinite_elements(z_f, P_f), nonfinite_elements(analysis.mean, analysis.cov)),
@@ -372,6 +382,8 @@ def check_pieces(state: GaussianState, dyn: LatentDynamics, y: Tensor, Q: float,
         "simple_covariance": lambda: torch.baddbmm(P_f, K, PJt.mT, alpha=-1.0),
         "gain_cholesky_flagged": lambda: kalman_gain(P_f, J, R_mat),
         "gain_lu_inverse": gain_lu_inverse,
+        "gain_cholesky_solve": gain_cholesky_solve,
+        "divergence_checks_isfinite_every_entry": isfinite_every_entry,
     }
 
 
