@@ -17,6 +17,8 @@ keeps every rep's median and the ratio. Sections:
 - ``vector``: the batched vector env (``uncertainty=False``, as for RL) at N envs against N separate
   ``LatentFilter`` envs, per env-step, EKF and EnKF (n = 20);
 - ``algebra``: the EKF update with a linear model against filterpy's ``KalmanFilter`` at batch 1 and 256;
+- ``torchkf``: one linear predict and Joseph-form update (r = 32, m = 16, float32) at B = 256 and 1024 against
+  torch-kf (a batched PyTorch Kalman filter, the dev extra), and the time of each of our safety checks;
 - ``training``: one Adam step of the Koopman model (lite at batch 32, paper at batch 256), FLOPs counted by
   ``torch.utils.flop_counter`` and the achieved rate against the matmul peak, in training mode (how dks-gym
   trains) and with the decoder's inference formulation (what switching training over to it would give).
@@ -24,6 +26,7 @@ keeps every rep's median and the ratio. Sections:
     OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections enkf vector --filters enkf   # refresh those entries
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --sections torchkf   # that section alone, the others kept
 
 ``--sections`` (and ``--filters`` for the vector section) run only some of it and refresh only their entries of an
 existing ``--out`` (the vector section's rows by filter and N); the rest of the file is kept, and each refreshed
@@ -33,6 +36,7 @@ section's machine and load are recorded under ``refreshed``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -43,6 +47,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 import torch
+from torch import Tensor
 
 import dks_gym  # noqa: F401  (registers the env ids)
 from dks_gym.assimilation import FilterConfig
@@ -51,9 +56,12 @@ from dks_gym.dataset import generate_dataset, load_dataset
 from dks_gym.envs.noise import measurement_noise
 from dks_gym.filters import EKF, LatentDynamics
 from dks_gym.filters.dynamics import GaussianState
+from dks_gym.filters.batch_elements import nonfinite_elements
+from dks_gym.filters.covariance import as_covariance, cholesky_or_nan, symmetrize
 from dks_gym.filters.ekf import ekf_forecast, ekf_update
 from dks_gym.filters.enkf import enkf_forecast, enkf_update
 from dks_gym.filters.jacobians import forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
+from dks_gym.filters.measurements import check_measurement
 from dks_gym.models import build_model
 from dks_gym.models.loss import training_loss
 from dks_gym.wrappers import LatentFilter, LatentFilterVectorEnv
@@ -364,6 +372,132 @@ def algebra_section(reps: int, inner: int) -> list[dict[str, Any]]:
     return rows
 
 
+def check_pieces(state: GaussianState, dyn: LatentDynamics, y: Tensor, Q: float, R: float) -> dict[str, Callable]:
+    """Our safety checks and chosen forms alone, on one step's own tensors: the three symmetrizations (P_f, S,
+    P_a), the two divergence checks, the measurement check, the Joseph form and its cheaper alternative
+    ``P_f - K J P_f``, the gain from the Cholesky factor with its failure flags and torch-kf's LU inverse; and
+    the forms these replaced: the gain by ``cholesky_solve``, the divergence checks by ``isfinite`` on every
+    entry."""
+    from dks_gym.filters.ekf import joseph_covariance, kalman_gain  # ImportError in a tree from before them
+
+    batch, m = state.mean.shape[0], y.shape[1]
+    forecast, _ = ekf_forecast(state, dyn, Q)
+    z_f, P_f = forecast.mean, forecast.cov
+    _, J = observe_with_jacobian(dyn, z_f)
+    R_mat = as_covariance(R, batch, m, like=z_f, name="R")
+    K, _ = kalman_gain(P_f, J, R_mat)
+    PJt = P_f @ J.mT
+    S = torch.baddbmm(R_mat, J, PJt)  # before its symmetrization
+    analysis, _ = ekf_update(forecast, y, dyn, R)
+
+    def symmetrizations() -> None:
+        symmetrize(P_f), symmetrize(S), symmetrize(analysis.cov)
+
+    def gain_lu_inverse() -> Tensor:  # torch-kf's gain: S inverted by LU, no symmetrization, no failure flag
+        PJt = P_f @ J.mT
+        return PJt @ torch.linalg.inv(torch.baddbmm(R_mat, J, PJt))
+
+    def gain_cholesky_solve() -> Tensor:  # the gain before: a Cholesky solve for the r right-hand sides
+        PJt = P_f @ J.mT
+        return torch.cholesky_solve(PJt.mT, cholesky_or_nan(symmetrize(torch.baddbmm(R_mat, J, PJt)))[0]).mT
+
+    def isfinite_every_entry() -> None:  # the divergence checks before
+        for t in (z_f, P_f, analysis.mean, analysis.cov):
+            ~torch.isfinite(t).flatten(1).all(1)
+
+    return {
+        "symmetrizations": symmetrizations,
+        "divergence_checks": lambda: (nonfinite_elements(z_f, P_f), nonfinite_elements(analysis.mean, analysis.cov)),
+        "measurement_check": lambda: check_measurement(y, batch, m, like=z_f),
+        "joseph_covariance": lambda: joseph_covariance(P_f, K, J, R_mat, diagonal_R=True),
+        "simple_covariance": lambda: torch.baddbmm(P_f, K, PJt.mT, alpha=-1.0),
+        "gain_cholesky_flagged": lambda: kalman_gain(P_f, J, R_mat),
+        "gain_lu_inverse": gain_lu_inverse,
+        "gain_cholesky_solve": gain_cholesky_solve,
+        "divergence_checks_isfinite_every_entry": isfinite_every_entry,
+    }
+
+
+def check_costs(times: dict[str, list[float]]) -> dict[str, float]:
+    """Each check's ms (median): a piece's time, or a chosen form's time over the cheaper form's."""
+    if "symmetrizations" not in times:
+        return {}
+    return {"symmetrizations": med(times["symmetrizations"]), "divergence_checks": med(times["divergence_checks"]),
+            "measurement_check": med(times["measurement_check"]),
+            "joseph_over_simple_form": med(times["joseph_covariance"]) - med(times["simple_covariance"]),
+            "cholesky_gain_over_lu_inverse": med(times["gain_cholesky_flagged"]) - med(times["gain_lu_inverse"])}
+
+
+def page_faults_per_call(fn: Callable[[], Any], calls: int = 20) -> float:
+    """Minor page faults per call of ``fn``: memory the allocator gave back to the OS and maps again."""
+    import resource
+
+    fn()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(calls):
+        fn()
+    return (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / calls
+
+
+def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]:
+    """A linear predict and Joseph-form update (r = 32, m = 16, float32, constant F and H, Q = 1e-4 I, R = 0.04 I):
+    ours (``ekf_forecast`` + ``ekf_update``, every check on, and with the divergence checks off) against torch-kf's
+    ``KalmanFilter(joseph_update=True)``, and beside them :func:`check_pieces`. Run against a tree from before
+    ``kalman_gain`` and ``joseph_covariance`` existed, it times the steps alone."""
+    try:
+        import torch_kf
+    except ImportError:
+        return {"skipped": "torch-kf is not installed; it is in the dev extra: pip install -e '.[dev]'"}
+    from importlib.metadata import version
+
+    rng = np.random.default_rng(0)
+    r, m, Q, R = 32, 16, 1e-4, 0.04
+    F = torch.as_tensor(np.linalg.qr(rng.standard_normal((r, r)))[0] * 0.99, dtype=torch.float32)
+    H = torch.as_tensor(rng.standard_normal((m, r)), dtype=torch.float32)
+    dyn = LatentDynamics(lambda x: x @ F.T, lambda x: x @ H.T, forecast_jacobian=F, observe_jacobian=H)
+    kf = torch_kf.KalmanFilter(F, H, Q * torch.eye(r), R * torch.eye(m), joseph_update=True)
+    rows = []
+    loadavg_start = list(os.getloadavg())
+    for batch in batches:
+        A = torch.as_tensor(rng.standard_normal((batch, r, r)), dtype=torch.float32)
+        z = torch.as_tensor(rng.standard_normal((batch, r)), dtype=torch.float32)
+        y = torch.as_tensor(rng.standard_normal((batch, m)), dtype=torch.float32)
+        state = GaussianState(z, A @ A.mT / r + 0.1 * torch.eye(r))
+        theirs_state = torch_kf.GaussianState(z[..., None], state.cov)
+
+        def ours(check: bool = True) -> GaussianState:
+            forecast, _ = ekf_forecast(state, dyn, Q, check=check)
+            return ekf_update(forecast, y, dyn, R, check=check)[0]
+
+        def theirs() -> Any:
+            return kf.update(kf.predict(theirs_state), y[..., None])
+
+        try:
+            pieces = check_pieces(state, dyn, y, Q, R)
+        except ImportError:
+            pieces = {}
+        times = interleaved({"ours": ours, "ours_without_divergence_checks": lambda: ours(False), "torchkf": theirs,
+                             **pieces}, reps, inner)
+        faults = {"ours": page_faults_per_call(ours), "torchkf": page_faults_per_call(theirs)}
+        analysis, ref = ours(), theirs()
+        torchkf_ms = med(times["torchkf"])
+        costs = check_costs(times)
+        rows.append({
+            "batch": batch, "ms": times,
+            "ours_over_torchkf": med(times["ours"]) / torchkf_ms,
+            "ours_over_torchkf_per_rep": [a / b for a, b in zip(times["ours"], times["torchkf"])],
+            "unchecked_over_torchkf": med(times["ours_without_divergence_checks"]) / torchkf_ms,
+            "minor_page_faults_per_call": faults,
+            "check_ms": costs, "check_fraction_of_torchkf": {k: v / torchkf_ms for k, v in costs.items()},
+            "max_relative_difference": {
+                "mean": float((analysis.mean - ref.mean[..., 0]).abs().max() / ref.mean.abs().max()),
+                "cov": float((analysis.cov - ref.covariance).abs().max() / ref.covariance.abs().max())},
+        })
+    malloc = {k: os.environ.get(k) for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")}
+    return {"torch_kf": version("torch-kf"), "torch_threads": torch.get_num_threads(), "glibc_malloc_env": malloc,
+            "rows": rows,
+            "loadavg_start": loadavg_start, "loadavg_end": list(os.getloadavg())}
+
 def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list[dict[str, Any]]:
     """One Adam step's achieved FLOP rate against the matmul peak (Koopman, T = 1)."""
     from torch.utils.flop_counter import FlopCounterMode
@@ -406,7 +540,7 @@ def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list
     return rows
 
 
-SECTIONS = ("env", "jacobian", "ekf", "enkf", "algebra", "vector", "training")
+SECTIONS = ("env", "jacobian", "ekf", "enkf", "algebra", "torchkf", "vector", "training")
 
 
 def refreshed(previous: dict[str, Any], run: dict[str, Any], names: list[str]) -> dict[str, Any]:
@@ -438,24 +572,31 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     reps, inner, batch, sizes, steps = args.reps, 10, 256, args.sizes, 20
-    presets = ["lite", "paper"]
+    presets, kf_batches = ["lite", "paper"], [256, 1024]
     if args.quick:
-        reps, inner, batch, sizes, steps, presets = 1, 1, 4, [1, 4], 2, ["lite"]
-    generate_dataset("burgers", "small", progress=False)
-    ds = load_dataset("burgers", "small")
-    model = build_model("burgers", "koopman", 32, "lite", dataset=ds, seed=0)
-    result: dict[str, Any] = {"machine": machine(args.threads)}
-    peak = matmul_peak(reps)
-    result["machine"]["matmul_gflops"] = peak["gflops"]
+        reps, inner, batch, sizes, steps, presets, kf_batches = 1, 1, 4, [1, 4], 2, ["lite"], [4, 16]
+
+    @functools.cache
+    def data() -> tuple[Any, Any]:
+        """The small Burgers data and the untrained lite Koopman model (built once, for the sections using them)."""
+        generate_dataset("burgers", "small", progress=False)
+        ds = load_dataset("burgers", "small")
+        return ds, build_model("burgers", "koopman", 32, "lite", dataset=ds, seed=0)
+
     sections = {
         "env": lambda: env_section(reps, 99 if not args.quick else 5),
-        "jacobian": lambda: jacobian_section(model, batch, reps, inner),
-        "ekf": lambda: ekf_section(model, batch, reps, inner),
-        "enkf": lambda: enkf_section(model, batch, 20, reps, inner),
+        "jacobian": lambda: jacobian_section(data()[1], batch, reps, inner),
+        "ekf": lambda: ekf_section(data()[1], batch, reps, inner),
+        "enkf": lambda: enkf_section(data()[1], batch, 20, reps, inner),
         "algebra": lambda: algebra_section(reps, inner),
-        "vector": lambda: [row for kind in args.filters for row in vector_section(model, sizes, kind, reps, steps)],
-        "training": lambda: training_section(ds, presets, reps, 1 if args.quick else 3),
+        # Small and quick: five times the reps of a third the calls, each pair close in time, for ratios near 1.
+        "torchkf": lambda: torchkf_section(kf_batches, 5 * reps, max(inner // 3, 1)),
+        "vector": lambda: [row for kind in args.filters
+                           for row in vector_section(data()[1], sizes, kind, reps, steps)],
+        "training": lambda: training_section(data()[0], presets, reps, 1 if args.quick else 3),
     }
+    result: dict[str, Any] = {"machine": machine(args.threads)}
+    result["machine"]["matmul_gflops"] = matmul_peak(reps)["gflops"]
     for name in args.sections:
         tic = time.perf_counter()
         result[name] = sections[name]()
@@ -467,7 +608,6 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {out}")
-
 
 if __name__ == "__main__":
     main()

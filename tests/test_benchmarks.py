@@ -17,7 +17,7 @@ def test_perf_benchmark_writes_every_section(burgers_small: Path, tmp_path: Path
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "perf.py"), "--quick", "--out", str(out)], check=True,
                    env=env, cwd=tmp_path, capture_output=True, timeout=600)
     result = json.loads(out.read_text())
-    assert set(result) == {"machine", "env", "jacobian", "ekf", "enkf", "algebra", "vector", "training"}
+    assert set(result) == {"machine", "env", "jacobian", "ekf", "enkf", "algebra", "torchkf", "vector", "training"}
     assert result["machine"]["torch_threads"] == 1 and len(result["machine"]["loadavg_end"]) == 3
     # The sensor-local Jacobian the benchmark times is the one autodiff through the whole decoder gives.
     assert result["jacobian"]["max_relative_difference"] < 1e-5
@@ -26,6 +26,9 @@ def test_perf_benchmark_writes_every_section(burgers_small: Path, tmp_path: Path
     assert all(row["fraction_of_peak"]["training_mode"] > 0 for row in result["training"])
     # The members' readings it times (from their sensors' windows) are the whole-grid decode's.
     assert result["enkf"]["observe_max_relative_difference"] < 1e-5
+    # The step timed against torch-kf computes what torch-kf computes (float32 round-off).
+    assert [row["batch"] for row in result["torchkf"]["rows"]] == [4, 16]
+    assert all(d < 1e-5 for row in result["torchkf"]["rows"] for d in row["max_relative_difference"].values())
 
 
 def test_a_partial_perf_run_refreshes_only_its_entries() -> None:

@@ -1,6 +1,7 @@
 """Tests of the latent-space filters against independent references.
 
-References: filterpy's KalmanFilter / ExtendedKalmanFilter (step by step), analytic Jacobians, separate
+References: filterpy's KalmanFilter / ExtendedKalmanFilter (step by step), torch-kf's KalmanFilter (a second
+batched PyTorch implementation, skipped where it is not installed), analytic Jacobians, separate
 unbatched runs, the exact Kalman filter (EnKF Monte-Carlo convergence rate), the discrete algebraic
 Riccati equation (scipy), and DAPPER's published Lorenz-63 EnKF score.
 """
@@ -33,6 +34,7 @@ from dks_gym.filters import (
     schur_localization,
     value_and_jacobian,
 )
+from dks_gym.filters.batch_elements import nonfinite_elements
 
 F64 = torch.float64
 
@@ -602,17 +604,89 @@ def test_cuda_matches_cpu(kind):
     torch.testing.assert_close(out["cuda"][1], out["cpu"][1], rtol=1e-10, atol=1e-10)
 
 
+# ------------------------------------------------------------------------------- EKF vs torch-kf
+
+
+def torch_kf_run(torch_kf, sys: dict, R_kf: torch.Tensor, z0: torch.Tensor, P0: torch.Tensor, ys: torch.Tensor):
+    kf = torch_kf.KalmanFilter(torch.tensor(sys["A"]).to(z0), torch.tensor(sys["H"]).to(z0),
+                               torch.tensor(sys["Q"]).to(z0), R_kf, joseph_update=True)
+    state = torch_kf.GaussianState(z0[..., None], P0)
+    for y in ys:
+        state = kf.update(kf.predict(state), y[..., None])
+    return state.mean[..., 0], state.covariance
+
+
+@pytest.mark.parametrize("R_kind", ["matrix", "per_element", "scalar"])
+def test_ekf_steps_equal_torch_kf_with_the_joseph_update(R_kind):
+    """torch-kf (a second batched PyTorch Kalman filter: LU inverse of S, no symmetrization) with
+    joseph_update=True, predict then update for 8 steps of a batch of 4, in float64."""
+    torch_kf = pytest.importorskip("torch_kf")
+    sys = linear_system(seed=31, r=5, m=3)
+    rng = np.random.default_rng(31)
+    B, m = 4, 3
+    R = {"matrix": torch.tensor(sys["R"]), "per_element": torch.tensor([0.1, 0.2, 0.4, 0.8], dtype=F64),
+         "scalar": 0.3}[R_kind]
+    variance = torch.as_tensor(R, dtype=F64)[..., None, None]  # torch-kf takes R as a matrix (stack)
+    R_kf = torch.tensor(sys["R"]) if R_kind == "matrix" else variance * torch.eye(m, dtype=F64)
+    z0 = torch.tensor(rng.standard_normal((B, 5)))
+    P0 = torch.tensor(np.stack([random_spd(rng, 5) for _ in range(B)]))
+    ys = torch.tensor(sys["ys"][:8, None] + rng.standard_normal((8, B, m)))
+    dyn = linear_dynamics(sys["A"], sys["H"], constant_jacobians=True)
+    state = GaussianState(z0, P0)
+    for y in ys:
+        state, _ = ekf_forecast(state, dyn, torch.tensor(sys["Q"]))
+        state, _ = ekf_update(state, y, dyn, R)
+    mean, cov = torch_kf_run(torch_kf, sys, R_kf, z0, P0, ys)
+    torch.testing.assert_close(state.mean, mean, rtol=0, atol=1e-10)
+    torch.testing.assert_close(state.cov, cov, rtol=0, atol=1e-10)
+
+
+def test_float32_ekf_step_equals_torch_kf_at_the_benchmarked_size():
+    """benchmarks/perf.py's torchkf case (r = 32, m = 16, float32) at B = 64: one step, equal to round-off."""
+    torch_kf = pytest.importorskip("torch_kf")
+    rng = np.random.default_rng(32)
+    B, r, m = 64, 32, 16
+    sys = {"A": np.linalg.qr(rng.standard_normal((r, r)))[0] * 0.99, "H": rng.standard_normal((m, r)),
+           "Q": 1e-4 * np.eye(r)}
+    z0 = torch.tensor(rng.standard_normal((B, r)), dtype=torch.float32)
+    M = torch.tensor(rng.standard_normal((B, r, r)), dtype=torch.float32)
+    P0, y = M @ M.mT / r + 0.1 * torch.eye(r), torch.tensor(rng.standard_normal((1, B, m)), dtype=torch.float32)
+    dyn = linear_dynamics(sys["A"], sys["H"], constant_jacobians=True)
+    forecast, _ = ekf_forecast(GaussianState(z0, P0), dyn, 1e-4)
+    analysis, _ = ekf_update(forecast, y[0], dyn, 0.04)
+    mean, cov = torch_kf_run(torch_kf, sys, 0.04 * torch.eye(m), z0, P0, y)
+    assert float((analysis.mean - mean).abs().max() / mean.abs().max()) < 1e-5
+    assert float((analysis.cov - cov).abs().max() / cov.abs().max()) < 1e-5
+
+
+def test_nonfinite_elements_flags_exactly_the_elements_holding_nan_or_inf():
+    """The check by each element's sum, against numpy's isfinite entry by entry: a NaN, an inf, a -inf, inf and
+    -inf together are flagged; finite entries whose float32 sum overflows are not."""
+    P, z = torch.zeros(7, 3, 3), torch.zeros(7, 3)
+    P[1, 0, 0], P[2, 1, 2], P[3, 2, 2] = float("nan"), float("inf"), -float("inf")
+    P[4, 0, 0], P[4, 1, 1] = float("inf"), -float("inf")
+    P[5] = torch.finfo(torch.float32).max
+    z[6, 1] = float("nan")
+    expected = ~(np.isfinite(P.numpy()).reshape(7, -1).all(1) & np.isfinite(z.numpy()).all(1))
+    assert nonfinite_elements(z, P).tolist() == expected.tolist() == [False, True, True, True, True, False, True]
+    assert not nonfinite_elements(z[[0, 5]], P[[0, 5]]).any()
+
+
 # ------------------------------------------------------------------------------- missing readings
 
 
-@pytest.mark.parametrize("constant_jacobians", [True, False])
-def test_masked_ekf_update_equals_filterpy_with_the_rows_present(constant_jacobians):
+@pytest.mark.parametrize(("constant_jacobians", "full_R"), [(True, True), (False, True), (True, False)])
+def test_masked_ekf_update_equals_filterpy_with_the_rows_present(constant_jacobians, full_R):
     """A reading marked missing drops its row of H and its row and column of R: filterpy's update with the
-    reduced H and R (a full R, so the cross terms matter) is the reference, element by element."""
+    reduced H and R (a full R, so the cross terms matter; or a scalar variance, which the update scales K's
+    columns by instead of multiplying by R) is the reference, element by element."""
     sys = linear_system(seed=21)
     A, H, Q, R, P0, z0 = sys["A"], sys["H"], sys["Q"], sys["R"], sys["P0"], sys["z0"]
+    if not full_R:
+        R = 0.3 * np.eye(3)
     masks = np.array([[True, False, True], [False, False, True], [True, True, True]])
-    ekf = EKF(linear_dynamics(A, H, constant_jacobians=constant_jacobians), R=torch.tensor(R), Q=torch.tensor(Q))
+    ekf = EKF(linear_dynamics(A, H, constant_jacobians=constant_jacobians), R=torch.tensor(R) if full_R else 0.3,
+              Q=torch.tensor(Q))
     ekf.reset(torch.tensor(z0).expand(3, -1).clone(), torch.tensor(P0))
     y = np.tile(sys["ys"][0], (3, 1))
     with pytest.raises(ValueError, match="mask"):  # NaN without a mask is refused, saying what to pass

@@ -17,8 +17,8 @@ CovarianceSpec = float | Tensor
 
 
 def symmetrize(P: Tensor) -> Tensor:
-    """Return ``(P + P^T) / 2`` over the last two axes."""
-    return 0.5 * (P + P.mT)
+    """Return ``(P + P^T) / 2`` over the last two axes (a new tensor; ``P`` is not modified)."""
+    return (P + P.mT).mul_(0.5)  # halving in place: the same numbers as 0.5 * (...) without a second buffer
 
 
 def floating_like(value: Tensor | float, like: Tensor) -> Tensor:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -46,6 +48,8 @@ def check_measurement(y: Tensor, batch: int, m: int | None, like: Tensor, mask: 
             f"got {y.shape[1]}; a filter's sensor layout is fixed, call reset() (or build a new filter) to change it"
         )
     mask = check_mask(mask, y)  # before it is used: a mask of the wrong shape or dtype gets its own message
+    if mask is None and math.isfinite(float(y.sum())):  # every reading finite: one reduction decides it
+        return y.to(dtype=like.dtype, device=like.device)
     present = torch.isfinite(y) if mask is None else torch.isfinite(y) | ~mask
     finite = present.all(1)
     if not finite.all():

@@ -96,14 +96,17 @@ class SequentialFilter:
         return self._Q_cache
 
     def _measurement_noise(self, like: Tensor, m: int) -> Tensor:
-        """``R`` as ``(B, m, m)`` on the state's dtype/device (``sigma^2 I`` when built from ``sigma``)."""
+        """``R`` on the state's dtype/device: its variance (a scalar or ``(B,)``) when ``R`` is a multiple of I
+        (built from ``sigma``, or a scalar or ``(B,)`` R), which the EKF update uses to scale the gain's columns
+        instead of multiplying by R; ``(B, m, m)`` otherwise."""
         key = (like.dtype, like.device, m)
         if getattr(self, "_R_key", None) != key:
             if self.sigma is not None:
-                R = as_covariance(floating_like(self.sigma, like) ** 2, self._batch, m, like=like, name="sigma")
+                name, variance = "sigma", floating_like(self.sigma, like) ** 2
             else:
-                R = as_covariance(self.R, self._batch, m, like=like, name="R")
-            self._R_cache, self._R_key = R, key
+                name, variance = "R", floating_like(self.R, like)
+            R = as_covariance(variance, self._batch, m, like=like, name=name)  # checks the shape, once
+            self._R_cache, self._R_key = (variance if variance.ndim <= 1 else R), key
         return self._R_cache
 
     def _measurement(self, y: Tensor | None, like: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
