@@ -36,9 +36,9 @@ def test_a_tiny_fourier_mode_grows_or_decays_at_the_linear_rate(nu: float, m: in
     x = L * np.arange(n_x) / n_x
     k = 2 * math.pi * m / L
     u = final(eps * np.cos(k * x + 0.3), nu, T, 8)
-    # The nonlinear term feeds mode m only at O(eps^3) (through mode 2m): relative 1e-20 here.
+    # The nonlinear term feeds mode m only at O(eps^3) (through mode 2m): relative 1e-20 here, below round-off.
     ratio = np.fft.rfft(u)[m] / np.fft.rfft(eps * np.cos(k * x + 0.3))[m]
-    assert ratio == pytest.approx(math.exp((k**2 - nu * k**4) * T), rel=1e-10, abs=0)
+    assert ratio == pytest.approx(math.exp((k**2 - nu * k**4) * T), rel=1e-12, abs=0)
     # Both signs occur: modes 1, 2 grow, mode 6 decays (and mode 4 grows only for nu = 0.5).
     assert (abs(ratio) > 1) == (k**2 > nu * k**4)
 
@@ -118,15 +118,15 @@ def test_galilean_invariance() -> None:
     k = ks.wavenumbers(n_x, L)
     shifted = np.fft.irfft(np.fft.rfft(u) * np.exp(-1j * k * c * T), n=n_x) + c
     assert np.abs(w - u).max() > 0.5
-    assert np.abs(w - shifted).max() < 1e-6  # the advection by c is explicit in ETDRK4: a dt^4 error
+    assert np.abs(w - shifted).max() < 2e-7  # the advection by c is explicit in ETDRK4: a dt^4 error (2.6e-8)
 
 
 def test_leading_lyapunov_exponent_at_l22_matches_the_published_value() -> None:
-    # Edson et al. (2019) and Cvitanovic et al. (2010): about 0.043-0.048 at L = 22. A 1500-time-unit
-    # average scatters by ~0.006 between initial conditions (validation/kuramoto_sivashinsky.py); a
-    # periodic window gives ~0 and L = 36 about 0.08, both outside the bounds.
+    # Published: about 0.043-0.048 (Edson et al. 2019; Cvitanovic et al. 2010); 0.0488 +- 0.0008 from long runs
+    # here. These 1500-time-unit runs give 0.048 +- 0.005 (mean +- std over 20 initial conditions, range
+    # 0.038-0.061: validation/results/kuramoto_sivashinsky.json); a periodic window gives ~0, L_eff = 36 ~0.075.
     lam = ks.leading_lyapunov_exponent(1.0, 22.0, n_x=48, dt=0.25, t_total=1500.0, transient=100.0)
-    assert 0.03 < lam < 0.06, lam
+    assert 0.032 < lam < 0.066, lam
 
 
 def test_trajectories_shapes_parameters_and_seed() -> None:

@@ -15,20 +15,22 @@ of length L / sqrt(nu). So varying nu on a fixed domain is varying the effective
 ``L_eff = L / sqrt(nu)`` (the only dynamical parameter) together with the time and amplitude scales.
 
 Chosen data parameters (:data:`LENGTH`, :data:`NU_RANGE`): L = 60 and nu in [0.5, 1], so L_eff runs from 60
-to 84.9 (7 to 10 linearly unstable Fourier modes, leading Lyapunov exponent about 0.085 in nu = 1 units).
-Why there: KS on small domains is chaotic only in windows. A scan of the leading Lyapunov exponent over
-L_eff = 14 .. 86 (3 or 4 random initial conditions each, 1500-2000 time units) found runs that settle on
-steady, travelling or periodic states (exponent ~0) at L_eff = 15-18, 21, 23-25, 27-29, 31-33, 40-41,
-48-49 and 56-57, so a range of nu there would mix chaotic and non-chaotic trajectories; from L_eff = 57.5 to
-86 every run was chaotic (exponent 0.075-0.10). L_eff = 22, the "smallest turbulent" domain of Cvitanovic,
-Davidchack & Siminos (SIAM J. Appl. Dyn. Syst. 9 (2010) 1), lies between two windows (L_eff = 21 and 23 both
-had non-chaotic runs). L = 60 is the low end of the robust band, so the dynamics stay as low-dimensional as
-robust chaos allows, a setting used for learned KS forecasting before (Vlachas et al., Neural Networks 126
-(2020) 191, with nu = 1); a factor 2 in nu changes the time scale (x 2), the amplitude (x 1.4) and the
-number of cells (6.7 to 9.5 wavelengths of the fastest-growing mode), enough for nu to matter to a model.
-The leading Lyapunov exponent at L = 22, about 0.043-0.048 in the literature (Edson, Bunder, Mattner &
-Roberts, ANZIAM J. 61 (2019) 270), is the published number the solver is checked against. The numbers and
-the commands: docs/validation.md#kuramoto-sivashinsky (``python validation/kuramoto_sivashinsky.py``).
+to 84.9 (9 to 13 linearly unstable Fourier modes; 6.8 to 9.5 wavelengths of the fastest-growing mode).
+Why there: on small domains KS is chaotic only between windows of steady, travelling-wave or periodic
+attractors. The scan of the leading Lyapunov exponent over L_eff = 14, 15, ..., 86 in
+validation/results/kuramoto_sivashinsky.json (3 random initial conditions each, 1500 time units) has runs
+with an exponent below 0.02 at L_eff = 15-18, 21, 23-25, 27-29, 31-33, 37, 40-41 and 48-49, so a nu range
+there would mix chaotic and non-chaotic trajectories; every run from L_eff = 50 to 86 is chaotic (exponents
+0.052-0.10, and 0.076-0.10 from 57 on). L = 60 sits at the low end of that band, with a margin: the dynamics
+stay as low-dimensional as robust chaos allows, which keeps them learnable. In the data's own units the
+leading exponent runs from 0.087 (nu = 1) to 0.18 (nu = 0.5): a Lyapunov time of 11 to 5.5 time units, 23 to
+11 frames 0.5 apart. A factor 2 in nu changes the time scale (x 2), the amplitude (x 1.4) and the number of
+cells, so nu matters to a model. L_eff = 22, the smallest domain with sustained chaos in Cvitanovic, Davidchack
+& Siminos (SIAM J. Appl. Dyn. Syst. 9 (2010) 1), lies between two windows (L_eff = 21 and 23). Its leading
+Lyapunov exponent, published as about 0.043-0.048 (Edson, Bunder, Mattner & Roberts, ANZIAM J. 61 (2019) 270;
+Cvitanovic et al. 2010), is the published number the solver is checked against: 0.0488 +- 0.0008 here
+(8 runs of 10^4 time units). All numbers and the commands: docs/validation.md#kuramoto-sivashinsky
+(``OMP_NUM_THREADS=1 python validation/kuramoto_sivashinsky.py``).
 Defaults of :func:`trajectories`: 128 stored points (solved on 256), frames 0.5 apart, solver step 0.025.
 """
 
@@ -236,7 +238,11 @@ def trajectories(
     (the same functions whatever the grid). The solve runs on ``oversample * n_x`` points and keeps every
     ``oversample``-th one (the stored values are those of the finer, converged solution). ``frame_dt`` must be
     a whole number of solver steps ``dt``. Raises if the solver grid does not resolve the solutions
-    (:func:`spectral_tail` above :data:`MAX_SPECTRAL_TAIL`).
+    (:func:`spectral_tail` above :data:`MAX_SPECTRAL_TAIL`). Defaults: 1.5 s of CPU time.
+
+    Reproducible bit for bit from the arguments on one machine (numpy's FFT is single-threaded). The chaos
+    amplifies round-off, so another batch size (the batched FFT rounds differently) or another CPU gives other,
+    statistically equivalent, trajectories once the transient has run.
     """
     _check_grid(n_x, L)
     for name, value in (("n_traj", n_traj), ("n_t", n_t), ("oversample", oversample)):
