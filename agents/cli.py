@@ -18,10 +18,15 @@ from .sequential import SequentialLayout
 
 
 @click.command("evaluate-placement")
-@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False))
+@click.argument("benchmark", type=click.Choice(list(BENCHMARKS), case_sensitive=False), required=False)
+@click.option("--data", "data_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Rank on this file in the dks-gym HDF5 schema instead: your own flow (a custom benchmark, "
+                   "BENCHMARK left out; its models trained by `dks-gym train --data FILE`) or one of the four's.")
 @click.option("--policies", default="paper,random,qr,greedy", show_default=True,
               help=f"Comma-separated, from: {', '.join(POLICIES)}.")
 @click.option("--model", type=click.Choice(list(MODEL_KINDS)), default="koopman", show_default=True)
+@click.option("--r", "r", type=click.IntRange(min=1), default=32, show_default=True,
+              help="Latent dimension of the model (as trained by `dks-gym train --r`).")
 @click.option("--filter", "filter_", type=click.Choice(list(FILTERS)), default="ekf", show_default=True)
 @click.option("--preset", type=click.Choice(["lite", "paper"]), default="lite", show_default=True,
               help="Latent model preset (checkpoint under $DKS_GYM_HOME/models).")
@@ -68,7 +73,8 @@ from .sequential import SequentialLayout
 @click.option("--train-if-missing", is_flag=True, help="Train the latent model when its checkpoint is missing.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Folder for placement.json.gz, placement.md and placement_layouts.png.")
-def evaluate_placement_command(benchmark: str, policies: str, model: str, filter_: str, preset: str,
+def evaluate_placement_command(benchmark: str | None, data_file: Path | None, policies: str, model: str, r: int,
+                               filter_: str, preset: str,
                                data_preset: str, n_sensors: int, noise_level: float, noise_seed: int,
                                noise_seeds: int, faults: str, constraint: str, budgets: str | None,
                                resume: bool, shred: str, random_seeds: int,
@@ -76,7 +82,7 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
                                greedy_trajectories: int | None,
                                sequential_ckpt: Path | None, ppo_ckpt: Path | None, agent_timesteps: int | None,
                                device: str, train_if_missing: bool, out: Path) -> None:
-    """Rank sensor-placement POLICIES on BENCHMARK's test split with a latent filter in the loop.
+    """Rank sensor-placement POLICIES on BENCHMARK's test split (or --data FILE's) with a latent filter in the loop.
 
     Every policy is fitted on the training split, then run on every episode (each test trajectory under each
     of the NOISE_SEEDS noise realizations) with the same noise for all; writes a ranked table (final-time
@@ -93,6 +99,8 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
     from .policies import PlacementTask
     from .scenario import Scenario
 
+    if benchmark is None and data_file is None:
+        raise click.UsageError("name a BENCHMARK (burgers, cylinder, dambreak, sphere) or a schema file with --data")
     try:
         scenario = Scenario(noise_seeds=noise_seeds, faults=parse_faults(faults),
                             constraint=constraint if constraint in CONSTRAINTS else _load_array(constraint),
@@ -102,7 +110,8 @@ def evaluate_placement_command(benchmark: str, policies: str, model: str, filter
         sweep = parse_budgets(budgets) if budgets is not None else None
         if resume and sweep is None:
             raise ValueError("--resume keeps the finished budgets of a --budgets sweep; give --budgets")
-        task = PlacementTask.load(benchmark.lower(), model, model_preset=preset, data_preset=data_preset,
+        task = PlacementTask.load(benchmark and benchmark.lower(), model, model_preset=preset,
+                                  data_preset=data_preset, data_path=data_file, r=r,
                                   device=device, train_if_missing=train_if_missing, kind=filter_,
                                   n_sensors=n_sensors if sweep is None else min(sweep), noise_level=noise_level,
                                   noise_seed=noise_seed)

@@ -96,10 +96,12 @@ class PlacementTask:
             raise ValueError(f"{self.n_sensors} sensors asked for but only {len(self.allowed_cells)} cells allowed")
 
     @classmethod
-    def load(cls, benchmark: str, model: str = "koopman", *, model_preset: str = "lite", data_preset: str = "paper",
-             r: int = 32, T: int = 1, device: str = "cpu", train_if_missing: bool = False,
-             candidates: np.ndarray | None = None, seed: int = 0, **config: Any) -> "PlacementTask":
-        """The task for a benchmark's dataset in the data home and a cached model checkpoint.
+    def load(cls, benchmark: str | None, model: str = "koopman", *, model_preset: str = "lite",
+             data_preset: str = "paper", data_path: str | Path | None = None, r: int = 32, T: int = 1,
+             device: str = "cpu", train_if_missing: bool = False, candidates: np.ndarray | None = None,
+             seed: int = 0, **config: Any) -> "PlacementTask":
+        """The task for a benchmark's dataset in the data home (or the schema file ``data_path``: with
+        ``benchmark`` None, any flow, a custom benchmark included) and a cached model checkpoint.
 
         ``config`` sets fields of :class:`~dks_gym.assimilation.AssimilationConfig` and of its filter
         (``kind``, ``noise_level``, ``n_sensors``, ``noise_seed`` ...). ``train_if_missing=True`` trains a missing
@@ -109,8 +111,8 @@ class PlacementTask:
         from dks_gym.assimilation import tune_if_missing
         from dks_gym.models import load_model
 
-        dataset = load_dataset(benchmark, data_preset)
-        latent = load_model(benchmark, model, r=r, preset=model_preset, T=T, dataset=dataset, device=device,
+        dataset = load_dataset(benchmark, data_preset, data_path)
+        latent = load_model(dataset.benchmark, model, r=r, preset=model_preset, T=T, dataset=dataset, device=device,
                             train_if_missing=train_if_missing, progress=False)
         if train_if_missing:  # a model trained here is tuned here too
             tune_if_missing(latent, dataset, progress=False)

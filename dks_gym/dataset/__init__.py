@@ -8,7 +8,9 @@
   :func:`load_benchmark`, the benchmark a file describes (a custom one: your own flow, any grid);
 * :mod:`.the_well`, :mod:`.pdebench`: other collections' layouts imported into the schema
   (:func:`import_the_well`, :func:`import_pdebench`, through :mod:`.importing`) and exported to them
-  (:func:`export_the_well`, :func:`export_pdebench`); a file breaking its layout raises :class:`LayoutError`.
+  (:func:`export_the_well`, :func:`export_pdebench`; a flow given as arrays: :func:`write_the_well`); a file
+  breaking its layout raises :class:`LayoutError`;
+* :mod:`.kuramoto_sivashinsky`: a flow none of the four benchmarks is, solved and written in The Well's layout.
 
 Files are written to a temporary name next to the target, under a lock (kept in ``$DKS_GYM_HOME/.locks``,
 see :mod:`dks_gym.locks`), and renamed into place only when complete, so a failed generation, Ctrl-C,
@@ -29,7 +31,7 @@ from .schema import (
     SchemaError,
     validate,
 )
-from .the_well import export_the_well, import_the_well
+from .the_well import WellFlow, export_the_well, import_the_well, write_the_well
 from .writer import generate_dataset, write_dataset
 
 __all__ = [
@@ -42,6 +44,7 @@ __all__ = [
     "DatasetMissing",
     "LayoutError",
     "SchemaError",
+    "WellFlow",
     "export_pdebench",
     "export_the_well",
     "generate_dataset",
@@ -52,4 +55,5 @@ __all__ = [
     "missing_message",
     "validate",
     "write_dataset",
+    "write_the_well",
 ]

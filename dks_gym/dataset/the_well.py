@@ -1,4 +1,5 @@
-"""The Well's HDF5 layout: import a folder of its files into one dks-gym schema file, and export ours to it.
+"""The Well's HDF5 layout: import a folder of its files into one dks-gym schema file, and export ours to it
+(:func:`export_the_well`; any flow given as arrays, e.g. a solver's output: :func:`write_the_well`).
 
 The layout followed is The Well's own specification and reader:
 
@@ -43,7 +44,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -374,67 +375,103 @@ def _vector_channels(channels: tuple[str, ...], ndim: int) -> tuple[str, ...]:
     return ()
 
 
+@dataclass(frozen=True)
+class WellFlow:
+    """A flow as arrays, to be written in The Well's layout by :func:`write_the_well`.
+
+    ``params``: the parameter of each trajectory, per split (``train``, ``test``); ``fields(split, rows)``: those
+    trajectories as ``(len(rows), n_t, C, *grid)`` in the order of ``channels``; ``boundaries``: (axis,
+    bc_type, ends) triples as in :data:`BOUNDARIES`; the cell types and their codes as in the dks-gym schema.
+    """
+
+    name: str
+    channels: tuple[str, ...]
+    param_name: str
+    time: np.ndarray
+    coords: tuple[np.ndarray, ...]
+    params: dict[str, np.ndarray]
+    fields: Callable[[str, np.ndarray], np.ndarray]
+    boundaries: tuple[tuple[str, str, str], ...] = ()
+    cell_type: np.ndarray | None = None
+    cell_type_codes: dict[str, int] = field(default_factory=dict)
+    solid_codes: tuple[int, ...] = ()
+
+
 def export_the_well(dataset: Dataset | str | Path, out_dir: str | Path) -> dict[str, list[Path]]:
-    """Write a dks-gym dataset in The Well's layout: ``out_dir/data/train`` and ``out_dir/data/test``, one
-    file per parameter value (its trajectories in their order, files named in the split's order); return the
-    files of each split. The velocity components become the t1 field ``velocity``, the other channels t0
-    fields, the cell types a constant t0 field (module docstring). ``out_dir`` appears whole or not at all,
-    and must not exist yet (or be empty)."""
+    """Write a dks-gym dataset in The Well's layout (:func:`write_the_well`), its benchmark's boundaries
+    (:data:`BOUNDARIES`) and cell types included; return the files of each split."""
     ds = dataset if isinstance(dataset, Dataset) else Dataset(dataset)
+    bench = ds.benchmark
+    return write_the_well(WellFlow(
+        name=bench.name, channels=tuple(ds.channels), param_name=ds.param_name, time=ds.time, coords=tuple(ds.coords),
+        params={split: ds.params(split) for split in SPLITS},
+        fields=lambda split, rows: np.stack([ds.trajectory(split, int(i)) for i in rows]),
+        boundaries=BOUNDARIES.get(bench.name, ()), cell_type=ds.cell_type,
+        cell_type_codes=dict(bench.cell_type_codes), solid_codes=tuple(bench.solid_codes)), out_dir)
+
+
+def write_the_well(flow: WellFlow, out_dir: str | Path) -> dict[str, list[Path]]:
+    """Write ``flow`` in The Well's layout: ``out_dir/data/train`` and ``out_dir/data/test``, one file per
+    parameter value (its trajectories in their order, files named in the split's order); return the files of
+    each split. The velocity components become the t1 field ``velocity``, the other channels t0 fields, the
+    cell types a constant t0 field (module docstring). ``out_dir`` appears whole or not at all, and must not
+    exist yet (or be empty)."""
     out_dir = Path(out_dir)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise FileExistsError(f"{out_dir} exists and is not an empty folder; choose a new one")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
     written: dict[str, list[Path]] = {}
     with atomic_path(out_dir, directory=True) as tmp:
         for split in SPLITS:
-            params = ds.params(split)
+            params = np.asarray(flow.params[split], dtype=np.float64)
             values = list(dict.fromkeys(params.tolist()))
             (tmp / "data" / split).mkdir(parents=True)
             for k, value in enumerate(values):
-                name = f"{ds.benchmark.name}_{k:04d}_{benchmark_name(ds.param_name)}_{value:.6g}.hdf5"
-                _export_file(ds, split, np.flatnonzero(params == value), value, tmp / "data" / split / name)
+                name = f"{flow.name}_{k:04d}_{benchmark_name(flow.param_name)}_{value:.6g}.hdf5"
+                _export_file(flow, split, np.flatnonzero(params == value), value, tmp / "data" / split / name)
                 written.setdefault(split, []).append(out_dir / "data" / split / name)
     return written
 
 
-def _export_file(ds: Dataset, split: str, rows: np.ndarray, value: float, path: Path) -> None:
-    bench, ndim = ds.benchmark, len(ds.grid)
+def _export_file(flow: WellFlow, split: str, rows: np.ndarray, value: float, path: Path) -> None:
+    ndim = len(flow.coords)
     dims = AXES[:ndim]
-    vector = _vector_channels(ds.channels, ndim)
-    scalars = [c for c in ds.channels if c not in vector]
+    vector = _vector_channels(flow.channels, ndim)
+    scalars = [c for c in flow.channels if c not in vector]
     with h5py.File(path, "w") as f:
-        f.attrs.update({"dataset_name": bench.name, "grid_type": "cartesian", "n_spatial_dims": ndim,
-                        "n_trajectories": len(rows), "simulation_parameters": [ds.param_name],
-                        ds.param_name: float(value)})
+        f.attrs.update({"dataset_name": flow.name, "grid_type": "cartesian", "n_spatial_dims": ndim,
+                        "n_trajectories": len(rows), "simulation_parameters": [flow.param_name],
+                        flow.param_name: float(value)})
         g = f.create_group("dimensions")
         g.attrs["spatial_dims"] = list(dims)
-        g.create_dataset("time", data=np.asarray(ds.time, dtype=np.float32)).attrs["sample_varying"] = False
-        for axis, values in zip(dims, ds.coords):
+        g.create_dataset("time", data=np.asarray(flow.time, dtype=np.float32)).attrs["sample_varying"] = False
+        for axis, values in zip(dims, flow.coords):
             g.create_dataset(axis, data=np.asarray(values, dtype=np.float32)).attrs.update(
                 {"sample_varying": False, "time_varying": False})
-        _export_boundaries(f.create_group("boundary_conditions"), bench.name, dict(zip(dims, ds.grid)))
+        _export_boundaries(f.create_group("boundary_conditions"), flow.boundaries,
+                           dict(zip(dims, (len(c) for c in flow.coords))))
         f.create_group("scalars").attrs["field_names"] = []
         flags = {"dim_varying": [True] * ndim, "sample_varying": True, "time_varying": True}
         t0 = f.create_group("t0_fields")
-        fields = np.stack([ds.trajectory(split, int(i)) for i in rows])  # (n, n_t, C, *grid)
+        fields = np.asarray(flow.fields(split, rows), dtype=np.float32)  # (n, n_t, C, *grid)
         for c in scalars:
-            t0.create_dataset(c, data=fields[:, :, ds.channels.index(c)]).attrs.update(flags)
-        if ds.cell_type is not None:
-            ct = t0.create_dataset("cell_type", data=ds.cell_type.astype(np.float32))
+            t0.create_dataset(c, data=fields[:, :, flow.channels.index(c)]).attrs.update(flags)
+        if flow.cell_type is not None:
+            ct = t0.create_dataset("cell_type", data=flow.cell_type.astype(np.float32))
             ct.attrs.update({"dim_varying": [True] * ndim, "sample_varying": False, "time_varying": False,
-                             CELL_TYPE_ATTR: json.dumps(bench.cell_type_codes, sort_keys=True),
-                             SOLID_CODES_ATTR: list(bench.solid_codes)})
-        t0.attrs["field_names"] = scalars + (["cell_type"] if ds.cell_type is not None else [])
+                             CELL_TYPE_ATTR: json.dumps(flow.cell_type_codes, sort_keys=True),
+                             SOLID_CODES_ATTR: list(flow.solid_codes)})
+        t0.attrs["field_names"] = scalars + (["cell_type"] if flow.cell_type is not None else [])
         t1 = f.create_group("t1_fields")
         t1.attrs["field_names"] = ["velocity"] if vector else []
         if vector:
-            components = np.stack([fields[:, :, ds.channels.index(c)] for c in vector], axis=-1)
+            components = np.stack([fields[:, :, flow.channels.index(c)] for c in vector], axis=-1)
             t1.create_dataset("velocity", data=components).attrs.update({**flags, COMPONENTS_ATTR: list(vector)})
         f.create_group("t2_fields").attrs["field_names"] = []
 
 
-def _export_boundaries(group: h5py.Group, benchmark: str, sizes: dict[str, int]) -> None:
-    for axis, kind, ends in BOUNDARIES.get(benchmark, ()):
+def _export_boundaries(group: h5py.Group, boundaries: tuple[tuple[str, str, str], ...], sizes: dict[str, int]) -> None:
+    for axis, kind, ends in boundaries:
         mask = np.zeros(sizes[axis], dtype=bool)
         mask[[0, -1] if ends == "both" else [0] if ends == "low" else [-1]] = True
         bc = group.create_group(f"{axis}_{kind.lower()}_{ends}")

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..benchmarks.protocol import ALL, get_protocol
+from ..benchmarks.protocol import ALL, PROTOCOLS, get_protocol
 from .results import ResultsDocument, ResultsError
 
 #: Where a document keeps its protocol (top level, after ``preset``).
@@ -67,7 +67,10 @@ def record_settings(doc: ResultsDocument, record: dict[str, Any]) -> dict[str, A
 def stamp_protocol(doc: ResultsDocument) -> ResultsDocument:
     """Name the benchmark's protocol in ``doc`` and mark the records that leave it (in place; returns ``doc``).
 
-    Idempotent: a stamped document is stamped again to the same bytes."""
+    Idempotent: a stamped document is stamped again to the same bytes. A custom benchmark (your own flow) has
+    no protocol: its document is left without one, as a file written before protocols is."""
+    if str(doc["benchmark"]).lower() not in PROTOCOLS:
+        return doc
     protocol = get_protocol(doc["benchmark"])
     block = dict(protocol.to_dict(), deviations=protocol.deviations(run_settings(doc)))
     for record in doc["records"]:
