@@ -4,10 +4,11 @@ The filters carry a latent covariance; the fields a user sees are decoded. Per c
 
 * EKF and forward run: ``diag(G P G^T)`` with ``G = d decode / dz`` at the filter mean (the first-order,
   "delta method" push of the latent covariance ``P`` through the decoder). It is computed as
-  ``sum_j (G l_j)^2`` over the columns ``l_j`` of a factor ``L L^T = P``: ``r`` Jacobian-vector products of
-  the decoder (forward-mode autodiff, vmapped over the columns so the primal pass is shared), never the
-  ``(C n_cells, r)`` Jacobian itself; models whose decoder is linear (pDMD) give their exact Jacobian
-  (``decoder_jacobian``), multiplied by ``L`` in chunks of cells.
+  ``sum_j (G l_j)^2`` over the columns ``l_j`` of a factor ``L L^T = P``, never the ``(C n_cells, r)``
+  Jacobian itself: by the model's own exact rule (``decoder_variance``: the neural models' decoder
+  linearized by hand, :mod:`dks_gym.models.decoder_variance`; pDMD's constant ``G`` times ``L``), or for
+  any other model by ``r`` Jacobian-vector products of the decoder (forward-mode autodiff, vmapped over
+  the columns so the primal pass is shared).
 * EnKF: the sample variance (divisor ``n - 1``) of the decoded members, every member decoded.
 
 plus, when given, the decoder's own reconstruction-error variance per cell (:func:`reconstruction_variance`):
@@ -58,33 +59,26 @@ def _field_size(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor) -> in
         return int(np.prod(model.decode(z[:1], mu[:1]).shape[1:]))
 
 
-def _has_exact_decoder_jacobian(model: FilterableModel) -> bool:
-    """True when the model overrides ``decoder_jacobian`` (a closed form, e.g. pDMD's affine decoder)."""
-    method = getattr(type(model), "decoder_jacobian", None)
-    return method is not None and method is not LatentModel.decoder_jacobian
-
-
 def jacobian_variance(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
     """``diag(G P G^T)`` per batch element, ``(B, C, n_cells)``, with ``G = d decode(z, mu) / dz`` at ``z``.
 
     ``z`` (B, r), ``mu`` (B,), ``P`` (B, r, r) symmetric positive semi-definite. With ``L L^T = P``:
-    ``diag(G P G^T) = sum_j (G L[:, j])^2``. Generic models: one Jacobian-vector product of the decoder per
-    column of ``L`` (forward mode, vmapped over the columns), in chunks of elements and columns holding at
-    most :data:`CHUNK_NUMBERS` output numbers (plus the decoder's activations); ``G`` itself is never formed.
-    Models with their own ``decoder_jacobian`` (pDMD: exact, affine) give ``G``, multiplied by ``L`` in
-    chunks of cells.
+    ``diag(G P G^T) = sum_j (G L[:, j])^2``. A model's own exact rule where it has one
+    (``model.decoder_variance(z, mu, L)``: the neural models linearize their decoder by hand, pDMD's is
+    affine); otherwise one Jacobian-vector product of the decoder per column of ``L`` (forward mode,
+    vmapped over the columns), in chunks of elements and columns holding at most :data:`CHUNK_NUMBERS`
+    output numbers (plus the decoder's activations); ``G`` itself is never formed.
     """
     z = z.detach()
-    batch, r = z.shape
     L = psd_sqrt(0.5 * (P + P.mT)).to(z)
-    if _has_exact_decoder_jacobian(model):
-        G = model.decoder_jacobian(z, mu)  # (B, C, n_cells, r); pDMD: a broadcast view
-        n_fields, n_cells = G.shape[1], G.shape[2]
-        out = torch.empty(batch, n_fields, n_cells, dtype=z.dtype, device=z.device)
-        step = max(1, CHUNK_NUMBERS // max(1, batch * n_fields * r))
-        for s in range(0, n_cells, step):
-            out[:, :, s:s + step] = (G[:, :, s:s + step].to(z) @ L[:, None]).pow(2).sum(-1)
-        return out
+    own = getattr(model, "decoder_variance", None)
+    var = None if own is None else own(z, torch.as_tensor(mu, device=z.device), L)
+    return _jvp_variance(model, z, mu, L) if var is None else var.flatten(2)
+
+
+def _jvp_variance(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor, L: torch.Tensor) -> torch.Tensor:
+    """:func:`jacobian_variance` by ``r`` Jacobian-vector products of ``decode``, for any model."""
+    batch, r = z.shape
     mu = torch.as_tensor(mu, device=z.device)
     n_out = _field_size(model, z, mu)
     # Per call: (elements x directions) tangent fields of n_out numbers each, at most CHUNK_NUMBERS in all.
