@@ -15,6 +15,8 @@ keeps every rep's median and the ratio. Sections:
 - ``jacobian``: the decoder Jacobian at the sensors, sensor-local against autodiff through the whole decoder;
 - ``vector``: the batched vector env (``uncertainty=False``, as for RL) at N envs against N separate
   ``LatentFilter`` envs, per env-step, EKF and EnKF (n = 20);
+- ``uncertainty``: the same for the EKF with the predictive std and its scores (``uncertainty=True``, the
+  envs' default) on both sides, and what the std adds to the vector env's step (``std_over_rest``);
 - ``algebra``: the EKF update with a linear model against filterpy's ``KalmanFilter`` at batch 1 and 256;
 - ``training``: one Adam step of the Koopman model (lite at batch 32, paper at batch 256), FLOPs counted by
   ``torch.utils.flop_counter`` and the achieved rate against the matmul peak, in training mode (how dks-gym
@@ -22,6 +24,7 @@ keeps every rep's median and the ratio. Sections:
 
     OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --only uncertainty --sizes 16 256   # one section, merged in
 """
 
 from __future__ import annotations
@@ -152,9 +155,10 @@ def jacobian_flops(model: Any, m: int) -> int:
     return (m + 1) * decoder_flops(model)
 
 
-def started_vector_env(model: Any, n: int, kind: str, n_members: int = 20) -> LatentFilterVectorEnv:
+def started_vector_env(model: Any, n: int, kind: str, n_members: int = 20,
+                       uncertainty: bool = False) -> LatentFilterVectorEnv:
     config = FilterConfig(kind=kind, Q="paper", P0="paper", n_members=n_members)
-    venv = LatentFilterVectorEnv("burgers", n, model=model, config=config, uncertainty=False, preset="small")
+    venv = LatentFilterVectorEnv("burgers", n, model=model, config=config, uncertainty=uncertainty, preset="small")
     venv.reset(seed=0)
     return venv
 
@@ -295,6 +299,48 @@ def vector_section(model: Any, sizes: list[int], kind: str, reps: int, steps: in
     return rows
 
 
+def episode_stepper(env: Any, actions: Any) -> Callable[[], None]:
+    """One env step per call, restarting the episode before its last step (resets are not env-steps; the
+    vector env restarts the batch inside its last step)."""
+    last = (env.envs[0] if hasattr(env, "envs") else env.unwrapped).dataset.n_frames - 2
+    state = {"k": 0}
+
+    def run() -> None:
+        if state["k"] >= last:
+            env.reset(seed=0)
+            state["k"] = 0
+        env.step(actions)
+        state["k"] += 1
+
+    env.reset(seed=0)
+    return run
+
+
+def uncertainty_section(model: Any, sizes: list[int], reps: int, steps: int) -> list[dict[str, Any]]:
+    """The EKF with the predictive std (``uncertainty=True``, the envs' default) and without, per env-step: N
+    separate ``LatentFilter`` envs (one, N times) and the vector env, all four interleaved rep by rep. The
+    speedup compares like with like (the std on both sides); ``std_over_rest`` is what the std and its scores
+    add to the vector env's step over the step without them."""
+    config = FilterConfig(kind="ekf", Q="paper", P0="paper")
+    singles = {unc: LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, config=config,
+                                 uncertainty=unc) for unc in (True, False)}
+    rows = []
+    for n in sizes:
+        actions = np.zeros(n, dtype=np.int64)
+        venvs = {unc: started_vector_env(model, n, "ekf", uncertainty=unc) for unc in (True, False)}
+        fns = {f"{kind}_{'on' if unc else 'off'}": episode_stepper(env, 0 if kind == "separate" else actions)
+               for kind, envs in (("separate", singles), ("vector", venvs)) for unc, env in envs.items()}
+        times = interleaved(fns, reps, steps)
+        per_env = {name: [t / n for t in ts] if name.startswith("vector") else ts for name, ts in times.items()}
+        rows.append({"filter": "ekf", "num_envs": n, "ms_per_env_step": per_env,
+                     "speedup_on": med(per_env["separate_on"]) / med(per_env["vector_on"]),
+                     "speedup_off": med(per_env["separate_off"]) / med(per_env["vector_off"]),
+                     "std_over_rest": med(per_env["vector_on"]) / med(per_env["vector_off"]) - 1.0})
+        for env in venvs.values():
+            env.close()
+    return rows
+
+
 def algebra_section(reps: int, inner: int) -> list[dict[str, Any]]:
     """The EKF update of a linear-Gaussian model (r = 32, m = 16): ours batched against filterpy in a loop."""
     from filterpy.kalman import KalmanFilter
@@ -382,6 +428,9 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", type=int, default=[1, 16, 64, 256])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, one rep: checks that every section runs")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "perf.json"))
+    parser.add_argument("--only", nargs="+", metavar="SECTION",
+                        help="run these sections only and replace them in --out, keeping the others (this run's "
+                             "machine record goes to 'machine_<section>')")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     reps, inner, batch, sizes, steps = args.reps, 10, 256, args.sizes, 20
@@ -402,14 +451,24 @@ def main() -> None:
         "algebra": lambda: algebra_section(reps, inner),
         "vector": lambda: vector_section(model, sizes, "ekf", reps, steps)
         + vector_section(model, sizes, "enkf", reps, steps),
+        "uncertainty": lambda: uncertainty_section(model, sizes, reps, steps),
         "training": lambda: training_section(ds, presets, reps, 1 if args.quick else 3),
     }
+    unknown = set(args.only or ()) - set(sections)
+    if unknown:
+        parser.error(f"unknown section(s) {sorted(unknown)}; choose from {', '.join(sections)}")
     for name, run in sections.items():
+        if args.only and name not in args.only:
+            continue
         tic = time.perf_counter()
         result[name] = run()
         print(f"{name}: {time.perf_counter() - tic:.1f} s", flush=True)
     result["machine"]["loadavg_end"] = list(os.getloadavg())
     out = Path(args.out)
+    if args.only:  # the other sections as they were, with the machine record of the run that made them
+        fresh, result = result, json.loads(out.read_text()) if out.exists() else {}
+        result.update({name: fresh[name] for name in args.only})
+        result.update({f"machine_{name}": fresh["machine"] for name in args.only})
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {out}")

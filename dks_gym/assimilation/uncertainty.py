@@ -41,6 +41,7 @@ CHUNK_NUMBERS = 2**22
 #: at all, e.g. inside a solid body of a linear model, must not divide by zero).
 STD_FLOOR = 1e-6
 _SQRT_PI = math.sqrt(math.pi)
+_SQRT_2 = math.sqrt(2.0)
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
@@ -178,10 +179,14 @@ def gaussian_crps(x: Any, mean: Any, std: Any) -> Any:
     ``z = (x - mean) / std`` (Gneiting and Raftery 2007). Tensors in, a tensor out; otherwise numpy."""
     as_numpy = not any(isinstance(v, torch.Tensor) for v in (x, mean, std))
     x, mean, std = (torch.as_tensor(v, dtype=torch.float64) if as_numpy else v for v in (x, mean, std))
-    z = (x - mean) / std
-    pdf = torch.exp(-0.5 * z * z) / _SQRT_2PI
-    crps = std * (z * (2.0 * torch.special.ndtr(z) - 1.0) + 2.0 * pdf - 1.0 / _SQRT_PI)
+    crps = _crps(((x - mean) / std), std)
     return crps.numpy() if as_numpy else crps
+
+
+def _crps(z: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """:func:`gaussian_crps` from the standardized error ``z``. ``2 Phi(z) - 1 = erf(z / sqrt 2)``: the same to
+    round-off, and torch's float64 erf is 10x faster than its ndtr."""
+    return std * (z * torch.erf(z / _SQRT_2) + 2.0 * torch.exp(-0.5 * z * z) / _SQRT_2PI - 1.0 / _SQRT_PI)
 
 
 def gaussian_scores(estimate: torch.Tensor, std: torch.Tensor, truth: torch.Tensor, scored: Sequence[int],
@@ -200,17 +205,20 @@ def gaussian_scores(estimate: torch.Tensor, std: torch.Tensor, truth: torch.Tens
     variance does not divide by zero. Returns (B,) float64 arrays.
     """
     idx = list(scored)
-    mean = estimate[:, idx].flatten(2).double()
-    x = truth[:, idx].flatten(2).to(mean)
-    s = std[:, idx].flatten(2).to(mean)
+    # a run of channels is a view (no copy before the float64 one): Burgers scores channel 0 of 1
+    pick = slice(idx[0], idx[-1] + 1) if idx and idx == list(range(idx[0], idx[-1] + 1)) else idx
+    mean = estimate[:, pick].flatten(2).double()
+    x = truth[:, pick].flatten(2).to(mean)
+    s = std[:, pick].flatten(2).to(mean)
     floor = torch.ones(len(idx), dtype=mean.dtype, device=mean.device) if channel_std is None \
         else torch.as_tensor(channel_std, device=mean.device).to(mean.dtype)[idx]
     s = torch.maximum(s, STD_FLOOR * floor[None, :, None])
     err = x - mean
+    z = err / s
     return {"coverage": (err.abs() <= Z95 * s).double().mean(dim=(1, 2)).cpu().numpy(),
-            "nees": (err / s).pow(2).mean(dim=(1, 2)).cpu().numpy(),
-            "crps": gaussian_crps(x, mean, s).mean(dim=(1, 2)).cpu().numpy(),
-            "predicted_mse": s.pow(2).mean(dim=(1, 2)).cpu().numpy()}
+            "nees": z.square().mean(dim=(1, 2)).cpu().numpy(),
+            "crps": _crps(z, s).mean(dim=(1, 2)).cpu().numpy(),
+            "predicted_mse": s.square().mean(dim=(1, 2)).cpu().numpy()}
 
 
 __all__ = [

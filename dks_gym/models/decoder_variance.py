@@ -3,8 +3,8 @@
 ``G = d decoder(x) / dx`` at ``x`` and ``F`` a factor of the covariance (``F F^T = P``), so the result is
 ``sum_j (G f_j)^2`` over the columns of ``F``: the tangent field of each column, squared and summed. The
 decoder is linearized by hand with the numbers forward-mode autodiff would multiply (the two agree to float
-round-off): the dense layers by the chain rule (:func:`~dks_gym.models.backbones.fc_jacobian`, every column
-at once), then each convolutional stage applied to the tangent fields without its bias, times the GELU slope
+round-off): the dense layers by the chain rule (every column of every element in one matrix product per
+layer), then each convolutional stage applied to the tangent fields without its bias, times the GELU slope
 at the primal pre-activation between stages. What makes it cheap on a CPU, where ``d`` Jacobian-vector
 products through torch's convolutions cost about 4 decodes each (``benchmarks/uncertainty_cost.py``):
 
@@ -28,12 +28,13 @@ from __future__ import annotations
 import itertools
 import math
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from .backbones import ConvDecoder, fc_jacobian, gelu_slope
+from .backbones import ConvDecoder, gelu_slope
 
 #: Numbers in the largest tangent field of one chunk (cells x channels x elements x columns): 4 MB in float32.
 CHUNK_NUMBERS = 2**20
@@ -91,73 +92,141 @@ def decoder_variance(decoder: ConvDecoder, x: torch.Tensor, factor: torch.Tensor
         raise ValueError(f"x must be (B, r) and factor (B, r, d), got {tuple(x.shape)} and {tuple(factor.shape)}")
     with torch.no_grad():
         lin = _linearization(decoder)
-        hidden_net = decoder.fc[:-1]
-        hidden = hidden_net(x)
-        # d hidden / dx times the factor, (B, h, d): the tangents at the last dense layer's input
-        columns = fc_jacobian(hidden_net, x) @ factor if len(hidden_net) else factor
+        hidden, columns = _dense_tangents(decoder.fc[:-1], x, factor)
+        slopes = _slopes(decoder, lin, hidden)
         largest = max(_stage_numbers(decoder, i) for i in range(len(decoder.deconv)))
         step = max(1, CHUNK_NUMBERS // (largest * factor.shape[2]))
-        parts = [_chunk_variance(decoder, lin, hidden[s:s + step], columns[s:s + step])
+        space: dict = {}  # the chunks' padded fields, allocated once: fresh memory costs a page fault per 4 kB
+        parts = [_chunk_variance(lin, [slope[..., s:s + step] for slope in slopes], columns[:, s:s + step], space)
                  for s in range(0, x.shape[0], step)]
         return torch.cat(parts)
 
 
-def _chunk_variance(decoder: ConvDecoder, lin: _Linearization, hidden: torch.Tensor,
-                    columns: torch.Tensor) -> torch.Tensor:
-    """:func:`decoder_variance` of the elements whose last hidden layer is ``hidden`` (b, h), with the
-    tangents ``columns`` (b, h, d) there."""
-    batch, h, d = columns.shape
-    ndim = decoder.ndim
-    flat = lin.weight.reshape(-1, h)
-    pre = (flat @ hidden.T).view(*lin.weight.shape[:-1], batch) + lin.bias  # the first stage's pre-activation
-    tangent = (flat @ columns.permute(1, 0, 2).reshape(h, batch * d)).view(*lin.weight.shape[:-1], batch, d)
+def _dense_tangents(layers: nn.Sequential, x: torch.Tensor, factor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The dense layers before the last at ``x`` (B, r) and their Jacobian times ``factor`` (B, r, d): the
+    hidden layer (B, h) and the tangents there, ``(h, B, d)`` (features outermost, so that every Linear is
+    one matrix product over all elements and columns, and a chunk of elements is a strided matrix)."""
+    batch, r, d = factor.shape
+    h, tangent = x, factor.permute(1, 0, 2)
+    for layer in layers:
+        if isinstance(layer, nn.Linear):
+            tangent = (layer.weight @ tangent.reshape(r, batch * d)).view(-1, batch, d)
+            r = tangent.shape[0]
+            h = layer(h)
+        else:  # an exact GELU (supports_decoder_variance)
+            tangent = tangent.mul_(gelu_slope(h).T[..., None])  # in place: the product above is fresh
+            h = layer(h)
+    return h, tangent
+
+
+def _slopes(decoder: ConvDecoder, lin: _Linearization, hidden: torch.Tensor) -> list[torch.Tensor]:
+    """The primal pass over every element at once: the GELU slope at the pre-activation feeding each stage
+    after the first, ``(*cells, C, B)`` each, from the last hidden layer ``hidden`` (B, h)."""
+    pre = (lin.weight.reshape(-1, hidden.shape[1]) @ hidden.T).view(*lin.weight.shape[:-1], -1) + lin.bias
+    slopes = []
     for i, stage in enumerate(lin.stages):
-        slope = gelu_slope(pre)
-        if i < len(lin.stages) - 1:  # the next stage's slope needs its pre-activation
-            upcoming = _apply(stage, decoder.act(pre)) + stage.bias[:, None]
-        tangent = _apply(stage, tangent, slope).unflatten(-1, (batch, d))
-        pre = upcoming if i < len(lin.stages) - 1 else None
-    var = tangent.pow(2).sum(-1)  # (*grid, C_out, b)
+        slopes.append(gelu_slope(pre))
+        if i < len(lin.stages) - 1:
+            pre = _products(stage, _padded_copy(stage, decoder.act(pre))) + stage.bias[:, None]
+    return slopes
+
+
+def _chunk_variance(lin: _Linearization, slopes: list[torch.Tensor], columns: torch.Tensor,
+                    space: dict) -> torch.Tensor:
+    """:func:`decoder_variance` of the elements whose tangents at the last dense layer's input are ``columns``
+    (h, b, d) and whose stages' slopes are ``slopes``. Each stage's input is written straight into the
+    zero-padded field its products read (the slope multiplied in place), a field of ``space`` reused from
+    chunk to chunk (only interiors are written, so the zero borders stay)."""
+    h, batch, d = columns.shape
+    ndim = len(lin.weight.shape) - 2
+    weight = lin.weight.reshape(-1, h)
+    columns = columns.reshape(h, batch * d)
+
+    def workspace(key: tuple, make: Callable[[], tuple]) -> tuple:
+        if key not in space:
+            space[key] = make()
+        return space[key]
+
+    if not lin.stages:
+        tangent = (weight @ columns).view(*lin.weight.shape[:-1], batch * d)
+    else:
+        field, inner = workspace((0, batch), lambda: _padded(lin.stages[0], lin.weight.shape[-2], batch * d, columns))
+        if inner.is_contiguous():  # 1D: the interior is one block
+            torch.mm(weight, columns, out=inner.view(weight.shape[0], -1))
+        else:
+            inner.copy_((weight @ columns).view(inner.shape))
+    for i, (stage, slope) in enumerate(zip(lin.stages, slopes)):
+        inner.unflatten(-1, (batch, d)).mul_(slope[..., None])
+        if i == len(lin.stages) - 1:
+            cells = tuple(2 * c for c in stage.cells)
+            tangent = workspace(("out", batch), lambda: (columns.new_empty(*cells, stage.bias.shape[0], batch * d),))[0]
+            _products(stage, field, out=tangent)
+        else:
+            following = workspace((i + 1, batch), lambda: _padded(lin.stages[i + 1], stage.bias.shape[0], batch * d,
+                                                                  columns))
+            _products(stage, field, out=following[1])
+            field, inner = following
+    var = torch.linalg.vector_norm(tangent.unflatten(-1, (batch, d)), dim=-1).square_()  # (*grid, C_out, b)
     return var.permute(ndim + 1, ndim, *range(ndim))
 
 
-def _apply(stage: _Stage, t: torch.Tensor, slope: torch.Tensor | None = None) -> torch.Tensor:
-    """``stage`` (no bias) on the fields ``t`` (*cells, C_in, N), or on ``t`` (*cells, C_in, b, d) times
-    ``slope`` (*cells, C_in, b): (*2 cells, C_out, N), the rows innermost throughout.
-
-    On the flattened padded grid a cell's window is a fixed flat shift from it, so per offset of the leading
-    axes the windows over the last axis (``w`` cells x ``C_in``, contiguous) are one strided view; the rows
-    of the padded columns of the leading axes compute values that are dropped.
-    """
-    cells, lo, ndim = stage.cells, stage.lo, len(stage.cells)
-    w = stage.lo + stage.hi + 1
-    c_in = t.shape[ndim]
-    n = t[(0,) * (ndim + 1)].numel()
+def _padded(stage: _Stage, channels: int, n: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A zero-padded field for ``stage``'s input, flat ``(cells + tail, channels, n)`` with zero borders (and a
+    zero tail the last rows' windows read), and its interior ``(*cells, channels, n)`` (left to be written)."""
+    cells, lo, w = stage.cells, stage.lo, stage.lo + stage.hi + 1
     size = [c + w - 1 for c in cells]
-    plane = [math.prod(size[a + 1:]) for a in range(ndim)]  # flat strides of the padded grid, in cells
     total = math.prod(size)
-    flat = t.new_empty(total + (w - 1) * sum(plane[1:]), c_in, n)  # the last rows' windows read past the grid
-    grid = flat[:total].view(*size, c_in, n)
-    for a in range(ndim):
+    flat = like.new_empty(total + (w - 1) * sum(math.prod(size[a + 1:]) for a in range(1, len(cells))), channels, n)
+    grid = flat[:total].view(*size, channels, n)
+    for a in range(len(cells)):
         grid[(slice(None),) * a + (slice(0, lo),)] = 0
         grid[(slice(None),) * a + (slice(lo + cells[a], None),)] = 0
     flat[total:] = 0
-    inner = grid[tuple(slice(lo, lo + c) for c in cells)]
-    if slope is None:
-        inner.copy_(t)
-    else:
-        torch.mul(t, slope[..., None], out=inner.unflatten(-1, t.shape[-2:]))
+    return flat, grid[tuple(slice(lo, lo + c) for c in cells)]
+
+
+def _padded_copy(stage: _Stage, t: torch.Tensor) -> torch.Tensor:
+    """``t`` (*cells, C, n) in a zero-padded field for ``stage`` (see :func:`_padded`)."""
+    flat, inner = _padded(stage, t.shape[-2], t.shape[-1], t)
+    inner.copy_(t)
+    return flat
+
+
+def _products(stage: _Stage, flat: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor | None:
+    """``stage`` (no bias) on the zero-padded field ``flat`` (see :func:`_padded`): (*2 cells, C_out, n), or
+    written into ``out`` (that shape; e.g. the next stage's padded interior) and None.
+
+    On the flattened padded grid a cell's window is a fixed flat shift from it, so per offset of the leading
+    axes the windows over the last axis (``w`` cells x ``C_in``, contiguous) are one strided view and the
+    offset's part one batched product; the rows of the padded columns of the leading axes compute values
+    that are dropped. In 1D the products are the output cells in order (cell ``2q + a`` is row ``q``, phase
+    ``a``), so they go straight into ``out``.
+    """
+    cells, ndim, w = stage.cells, len(stage.cells), stage.lo + stage.hi + 1
+    c_in, n = flat.shape[1:]
+    size = [c + w - 1 for c in cells]
+    plane = [math.prod(size[a + 1:]) for a in range(ndim)]  # flat strides of the padded grid, in cells
     rows = cells[0] * plane[0]
-    out = None
+    direct = out is not None and ndim == 1 and out.is_contiguous()
+    products = None
     for j, lead in enumerate(itertools.product(range(w), repeat=ndim - 1)):
         shift = sum(o * plane[a] for a, o in enumerate(lead))
         windows = flat.as_strided((rows, w * c_in, n), (c_in * n, n, 1), shift * c_in * n)
-        part = torch.bmm(stage.kernels[j], windows)
-        out = part if out is None else out.add_(part)
-    c_out = out.shape[1] // 2**ndim
-    out = out.view(cells[0], *size[1:], *(2,) * ndim, c_out, n)[(slice(None), *(slice(0, c) for c in cells[1:]))]
+        if products is None:
+            products = torch.bmm(stage.kernels[j], windows, out=out.view(rows, -1, n) if direct else None)
+        else:
+            products.baddbmm_(stage.kernels[j], windows)
+    if direct:
+        return None
+    c_out = products.shape[1] // 2**ndim
+    products = products.view(cells[0], *size[1:], *(2,) * ndim, c_out, n)
+    products = products[(slice(None), *(slice(0, c) for c in cells[1:]))]
     interleaved = [axis for a in range(ndim) for axis in (a, ndim + a)]  # cell q_a, then its phase a_a
-    return out.permute(*interleaved, 2 * ndim, 2 * ndim + 1).reshape(*(2 * c for c in cells), c_out, n)
+    result = products.permute(*interleaved, 2 * ndim, 2 * ndim + 1).reshape(*(2 * c for c in cells), c_out, n)
+    if out is None:
+        return result
+    out.copy_(result)
+    return None
 
 
 def _linearization(decoder: ConvDecoder) -> _Linearization:

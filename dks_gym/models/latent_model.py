@@ -205,8 +205,9 @@ class LatentModel(nn.Module):
     def decoder_variance(self, z: torch.Tensor, mu: torch.Tensor, factor: torch.Tensor) -> torch.Tensor | None:
         """``diag(G F F^T G^T)`` with ``G = d decode(z, mu) / dz`` at each latent state and ``factor`` ``F``
         (B, r, d) (``F F^T`` a latent covariance): the decoded variance per cell, (B, C, *grid) in physical
-        units squared. None (here) where the model has no exact rule of its own: the caller then differentiates
-        ``decode`` (:func:`~dks_gym.assimilation.jacobian_variance`)."""
+        units squared, a new tensor (the caller may change it in place). None (here) where the model has no
+        exact rule of its own: the caller then differentiates ``decode``
+        (:func:`~dks_gym.assimilation.jacobian_variance`)."""
         return None
 
     def observe(self, z: ArrayLike, mu: ArrayLike, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
@@ -358,7 +359,7 @@ class NeuralLatentModel(LatentModel):
         z = self._latent(z)
         x = z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0]))
         var = decoder_variance(self.decoder, x, factor.to(self._dtype))[:, : self.n_fields]
-        return (var * self._channel_view(self.stats_std, var.dtype).pow(2)).to(z.dtype)
+        return var.mul_(self._channel_view(self.stats_std, var.dtype).pow(2)).to(z.dtype)
 
     def encode(self, x: ArrayLike, mu: ArrayLike) -> torch.Tensor:
         """z = E_phi(x, mu) + e_omega(mu) from physical fields (B, C, *grid)."""
