@@ -16,6 +16,8 @@ keeps every rep's median and the ratio. Sections:
 - ``jacobian``: the decoder Jacobian at the sensors, sensor-local against autodiff through the whole decoder;
 - ``vector``: the batched vector env (``uncertainty=False``, as for RL) at N envs against N separate
   ``LatentFilter`` envs, per env-step, EKF and EnKF (n = 20);
+- ``uncertainty``: the same for the EKF with the predictive std and its scores (``uncertainty=True``, the
+  envs' default) on both sides, and what the std adds to the vector env's step (``std_over_rest``);
 - ``algebra``: the EKF update with a linear model against filterpy's ``KalmanFilter`` at batch 1 and 256;
 - ``torchkf``: one linear predict and Joseph-form update (r = 32, m = 16, float32) at B = 256 and 1024 against
   torch-kf (a batched PyTorch Kalman filter, the dev extra), and the time of each of our safety checks;
@@ -27,6 +29,7 @@ keeps every rep's median and the ratio. Sections:
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections enkf vector --filters enkf   # refresh those entries
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections torchkf   # that section alone, the others kept
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --sections uncertainty --sizes 16 256   # one section, merged in
 
 ``--sections`` (and ``--filters`` for the vector section) run only some of it and refresh only their entries of an
 existing ``--out`` (the vector section's rows by filter and N); the rest of the file is kept, and each refreshed
@@ -166,9 +169,10 @@ def jacobian_flops(model: Any, m: int) -> int:
     return (m + 1) * decoder_flops(model)
 
 
-def started_vector_env(model: Any, n: int, kind: str, n_members: int = 20) -> LatentFilterVectorEnv:
+def started_vector_env(model: Any, n: int, kind: str, n_members: int = 20,
+                       uncertainty: bool = False) -> LatentFilterVectorEnv:
     config = FilterConfig(kind=kind, Q="paper", P0="paper", n_members=n_members)
-    venv = LatentFilterVectorEnv("burgers", n, model=model, config=config, uncertainty=False, preset="small")
+    venv = LatentFilterVectorEnv("burgers", n, model=model, config=config, uncertainty=uncertainty, preset="small")
     venv.reset(seed=0)
     return venv
 
@@ -331,6 +335,48 @@ def vector_section(model: Any, sizes: list[int], kind: str, reps: int, steps: in
             row["over_flop_floor"] = med(per_env) / row["flop_floor_ms_per_env_step"]
         rows.append(row)
         venv.close()
+    return rows
+
+
+def episode_stepper(env: Any, actions: Any) -> Callable[[], None]:
+    """One env step per call, restarting the episode before its last step (resets are not env-steps; the
+    vector env restarts the batch inside its last step)."""
+    last = (env.envs[0] if hasattr(env, "envs") else env.unwrapped).dataset.n_frames - 2
+    state = {"k": 0}
+
+    def run() -> None:
+        if state["k"] >= last:
+            env.reset(seed=0)
+            state["k"] = 0
+        env.step(actions)
+        state["k"] += 1
+
+    env.reset(seed=0)
+    return run
+
+
+def uncertainty_section(model: Any, sizes: list[int], reps: int, steps: int) -> list[dict[str, Any]]:
+    """The EKF with the predictive std (``uncertainty=True``, the envs' default) and without, per env-step: N
+    separate ``LatentFilter`` envs (one, N times) and the vector env, all four interleaved rep by rep. The
+    speedup compares like with like (the std on both sides); ``std_over_rest`` is what the std and its scores
+    add to the vector env's step over the step without them."""
+    config = FilterConfig(kind="ekf", Q="paper", P0="paper")
+    singles = {unc: LatentFilter(gym.make("DKS/Burgers-v0", preset="small"), model=model, config=config,
+                                 uncertainty=unc) for unc in (True, False)}
+    rows = []
+    for n in sizes:
+        actions = np.zeros(n, dtype=np.int64)
+        venvs = {unc: started_vector_env(model, n, "ekf", uncertainty=unc) for unc in (True, False)}
+        fns = {f"{kind}_{'on' if unc else 'off'}": episode_stepper(env, 0 if kind == "separate" else actions)
+               for kind, envs in (("separate", singles), ("vector", venvs)) for unc, env in envs.items()}
+        times = interleaved(fns, reps, steps)
+        per_env = {name: [t / n for t in ts] if name.startswith("vector") else ts for name, ts in times.items()}
+        rows.append({"filter": "ekf", "num_envs": n, "ms_per_env_step": per_env,
+                     "speedup_on": med(per_env["separate_on"]) / med(per_env["vector_on"]),
+                     "speedup_off": med(per_env["separate_off"]) / med(per_env["vector_off"]),
+                     "std_over_rest": med(per_env["vector_on"]) / med(per_env["vector_off"]) - 1.0})
+        for env in venvs.values():
+            env.close()
     return rows
 
 
@@ -540,7 +586,7 @@ def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list
     return rows
 
 
-SECTIONS = ("env", "jacobian", "ekf", "enkf", "algebra", "torchkf", "vector", "training")
+SECTIONS = ("env", "jacobian", "ekf", "enkf", "algebra", "torchkf", "vector", "uncertainty", "training")
 
 
 def refreshed(previous: dict[str, Any], run: dict[str, Any], names: list[str]) -> dict[str, Any]:
@@ -593,6 +639,7 @@ def main() -> None:
         "torchkf": lambda: torchkf_section(kf_batches, 5 * reps, max(inner // 3, 1)),
         "vector": lambda: [row for kind in args.filters
                            for row in vector_section(data()[1], sizes, kind, reps, steps)],
+        "uncertainty": lambda: uncertainty_section(data()[1], sizes, reps, steps),
         "training": lambda: training_section(data()[0], presets, reps, 1 if args.quick else 3),
     }
     result: dict[str, Any] = {"machine": machine(args.threads)}

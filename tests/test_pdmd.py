@@ -479,6 +479,20 @@ def test_exact_decoder_jacobian_equals_autodiff_of_the_decoder():
     torch.testing.assert_close(exact, autodiff.to(exact), rtol=1e-10, atol=1e-12)
 
 
+def test_decoder_variance_equals_the_exact_jacobian_times_the_factor():
+    """diag(G F F^T G^T) from U_r in one product against the closed-form Jacobian G multiplied out per element
+    (any orthonormal U_r: the fit does not enter)."""
+    model = build_model("burgers", "pdmd", r=6, stats_mean=[0.5], stats_std=[0.8])
+    g = torch.Generator().manual_seed(0)
+    model.basis = torch.linalg.qr(torch.randn(model.n_state, model.r, generator=g))[0]
+    z, factor = torch.randn(3, model.r, generator=g), torch.randn(3, model.r, 4, generator=g)
+    G = model.decoder_jacobian(z, None)  # (B, C, n_cells, r)
+    expected = (G @ factor[:, None]).pow(2).sum(-1)
+    var = model.decoder_variance(z, None, factor)
+    assert var.shape == (3, model.n_fields, *model.grid)
+    torch.testing.assert_close(var.flatten(2), expected, rtol=1e-5, atol=1e-6 * float(expected.max()))
+
+
 def test_fit_records_pydmds_condition_number_instead_of_warning():
     """The ill-conditioned stacked coefficients are a diagnostic of the fit, not a warning on every fit."""
     data = travelling_waves(TRAIN_MU)

@@ -322,10 +322,10 @@ class Assimilation:
                                                 cells=cells)
             else:
                 var = jacobian_variance(self.model, self._now.mean[:, :r], self._mu, self._now.cov[:, :r, :r])
-            var = var.reshape(estimate.shape)
+            var = var.reshape(estimate.shape)  # in place from here: var is this call's own
             if self.reconstruction_var is not None:
-                var = var + self.reconstruction_var.to(var)
-            return var.clamp_min(0.0).sqrt(), members
+                var.add_(self.reconstruction_var.to(var))
+            return var.clamp_min_(0.0).sqrt_(), members
 
     def parameter_scores(self) -> dict[str, np.ndarray]:
         """The estimated mu per element and how it fares (see :attr:`Snapshot.parameter`)."""

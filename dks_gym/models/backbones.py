@@ -61,7 +61,12 @@ def _grid_padding(shape: BenchmarkShape, spec: BackboneSpec) -> tuple[int, ...]:
     return tuple(b * factor - n for b, n in zip(_bottleneck_grid(shape, spec), shape.grid))
 
 
-def _fc_jacobian(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+def gelu_slope(h: torch.Tensor) -> torch.Tensor:
+    """The derivative of the exact GELU at ``h``: ``Phi(h) + h phi(h)``."""
+    return 0.5 * (1 + torch.erf(h / math.sqrt(2))) + h * torch.exp(-0.5 * h * h) / math.sqrt(2 * math.pi)
+
+
+def fc_jacobian(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     """d layers(x) / dx per row, (N, out, in), for a stack of Linear layers and exact GELUs (the chain rule by
     hand, carried transposed so that each Linear is one matrix product over all rows: forward-mode autodiff
     through vmap costs several times more here)."""
@@ -73,9 +78,7 @@ def _fc_jacobian(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
                 jac_t = jac_t @ layer.weight.T
                 h = layer(h)
             elif isinstance(layer, nn.GELU) and layer.approximate == "none":
-                # GELU'(h) = Phi(h) + h phi(h)
-                slope = 0.5 * (1 + torch.erf(h / math.sqrt(2))) + h * torch.exp(-0.5 * h * h) / math.sqrt(2 * math.pi)
-                jac_t = jac_t * slope[:, None, :]
+                jac_t = jac_t * gelu_slope(h)[:, None, :]
                 h = layer(h)
             else:
                 raise TypeError(f"no Jacobian rule for {type(layer).__name__} in the decoder's dense layers")
@@ -465,7 +468,7 @@ class ConvDecoder(nn.Module):
         # d values / d hidden: the gradient's weighted sum of the last layer's rows, without gathering them.
         v = nn.functional.embedding_bag(index.reshape(n * m, -1), last.weight,
                                         per_sample_weights=grad.reshape(n * m, -1), mode="sum")
-        jac = v.reshape(n, m, -1) @ _fc_jacobian(hidden_net, x) if len(hidden_net) else v.reshape(n, m, -1)
+        jac = v.reshape(n, m, -1) @ fc_jacobian(hidden_net, x) if len(hidden_net) else v.reshape(n, m, -1)
         return values.detach().reshape(n, m), jac.detach()
 
 

@@ -12,6 +12,7 @@ Every model is a ``torch.nn.Module`` with attributes ``benchmark``, ``kind`` ("k
     filter_forecast_jacobian(mu)            dF/dz as the filters take it: a constant (B, r, r) or a callable
     filter_observe_jacobian(mu, rows, channel)  dh/dz as the filters take it: None (autodiff) or a callable
     decoder_jacobian(z, mu)                                     -> d decode/dz (B, C, n_cells, r)
+    decoder_variance(z, mu, factor)         diag(G F F^T G^T), G = d decode/dz (B, C, *grid), or None
 
 A model owns its linearization: the Koopman model hands the filters K(mu) (cached per mu), pDMD A~(mu)
 and its exact observation and decoder matrices, the MLP and xLSTM maps an autodiff Jacobian.
@@ -34,6 +35,7 @@ import torch
 from torch import nn
 
 from .backbones import ConvDecoder, ConvEncoder, ParametricEncoder, quiet_forward_ad
+from .decoder_variance import decoder_variance, supports_decoder_variance
 from .embedding import ParameterEmbedding
 from .presets import EMBEDDING_HIDDEN_LAYERS, BenchmarkShape, backbone_spec
 
@@ -200,6 +202,14 @@ class LatentModel(nn.Module):
                 cols.append(torch.func.jvp(decode, (z,), (tangent,))[1].detach())
         return torch.stack(cols, dim=-1)
 
+    def decoder_variance(self, z: torch.Tensor, mu: torch.Tensor, factor: torch.Tensor) -> torch.Tensor | None:
+        """``diag(G F F^T G^T)`` with ``G = d decode(z, mu) / dz`` at each latent state and ``factor`` ``F``
+        (B, r, d) (``F F^T`` a latent covariance): the decoded variance per cell, (B, C, *grid) in physical
+        units squared, a new tensor (the caller may change it in place). None (here) where the model has no
+        exact rule of its own: the caller then differentiates ``decode``
+        (:func:`~dks_gym.assimilation.jacobian_variance`)."""
+        return None
+
     def observe(self, z: ArrayLike, mu: ArrayLike, sensors: ArrayLike, channel: int | str) -> torch.Tensor:
         """h(z) = S(decode(z)): the decoded ``channel`` (index or name) at flat C-order grid ``sensors``, one layout
         (m,) for every row or one per row (B, m), -> (B, m)."""
@@ -358,6 +368,17 @@ class NeuralLatentModel(LatentModel):
         x = z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0]))
         values = self.decoder.at_cells(x, idx.expand(z.shape[0], -1), c).to(z.dtype)
         return values * self.stats_std[c].to(z.dtype) + self.stats_mean[c].to(z.dtype)  # as decode() de-normalizes
+
+    def decoder_variance(self, z: torch.Tensor, mu: torch.Tensor, factor: torch.Tensor) -> torch.Tensor | None:
+        """``diag(G F F^T G^T)`` per cell, (B, C, *grid) physical units: the decoder linearized by hand, stage by
+        stage (:func:`~dks_gym.models.decoder_variance.decoder_variance`: exact, the cost of a few decodes
+        rather than ``d`` Jacobian-vector products); None for a decoder it cannot linearize."""
+        if not supports_decoder_variance(self.decoder):
+            return None
+        z = self._latent(z)
+        x = z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0]))
+        var = decoder_variance(self.decoder, x, factor.to(self._dtype))[:, : self.n_fields]
+        return var.mul_(self._channel_view(self.stats_std, var.dtype).pow(2)).to(z.dtype)
 
     def encode(self, x: ArrayLike, mu: ArrayLike) -> torch.Tensor:
         """z = E_phi(x, mu) + e_omega(mu) from physical fields (B, C, *grid)."""

@@ -3,8 +3,8 @@
 The four model classes (Koopman, pDMD, MLP, xLSTM) satisfy it by inheriting from
 :class:`~dks_gym.models.LatentModel`; a model of your own satisfies it by having these members, whatever its
 base class. Exactly these are read by :mod:`dks_gym.assimilation` and the wrappers; the optional extras
-they use when present (``grid`` and ``n_fields`` to size a decoded field without decoding one, an
-overridden ``decoder_jacobian`` for an exact predictive std, ``checkpoint_path`` to store a tuned Q scale)
+they use when present (``grid`` and ``n_fields`` to size a decoded field without decoding one, a
+``decoder_variance`` for an exact, fast predictive std, ``checkpoint_path`` to store a tuned Q scale)
 are not part of it.
 """
 
