@@ -144,6 +144,11 @@ def test_padded_grid_decodes_to_the_grid_and_its_sensor_jacobian_is_the_derivati
             dz[:, i] = 1e-6
             fd = (model.decode(z + dz, mu) - model.decode(z - dz, mu))[:, 0, sensors[0]] / 2e-6
             torch.testing.assert_close(jacobian[..., i], fd, rtol=1e-6, atol=1e-9)
+    # The predictive variance's exact rule crops as the decoder does: diag(G G^T) from the whole Jacobian.
+    full = torch.autograd.functional.jacobian(lambda v: model.decode(v, mu).sum(0), z)  # (1, 100, 3, 4)
+    expected = (full.permute(2, 0, 1, 3) ** 2).sum(-1)  # (3, 1, 100)
+    eye = torch.eye(4, dtype=torch.float64).expand(3, 4, 4)
+    torch.testing.assert_close(model.decoder_variance(z, mu, eye), expected, rtol=1e-9, atol=1e-12)
 
 
 # The env, training and the filter ------------------------------------------------------------------------------

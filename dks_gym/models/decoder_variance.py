@@ -99,7 +99,9 @@ def decoder_variance(decoder: ConvDecoder, x: torch.Tensor, factor: torch.Tensor
         space: dict = {}  # the chunks' padded fields, allocated once: fresh memory costs a page fault per 4 kB
         parts = [_chunk_variance(lin, [slope[..., s:s + step] for slope in slopes], columns[:, s:s + step], space)
                  for s in range(0, x.shape[0], step)]
-        return torch.cat(parts)
+        variance = torch.cat(parts)
+        # A grid padded to a multiple of 2**stages (custom benchmarks): the decoder crops its output; so here.
+        return variance if decoder.crop is None else variance[decoder.crop].contiguous()
 
 
 def _dense_tangents(layers: nn.Sequential, x: torch.Tensor, factor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
