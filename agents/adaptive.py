@@ -25,7 +25,7 @@ import numpy as np
 
 from .baselines import PaperLayout
 from .policies import AdaptivePolicy, PlacementTask, candidate_lattice, distinct_picks
-from .rl import learn_ppo, load_agent, offline_seconds, record_ppo_run, trainer_command
+from .rl import PortableAgent, learn_ppo, load_agent, offline_seconds, record_ppo_run, trainer_command
 from .scoring import forward_reference, run_layouts
 
 
@@ -97,7 +97,7 @@ def train_adaptive(task: PlacementTask, *, timesteps: int = 20480, n_envs: int =
     return agent, meta
 
 
-class PPOAdaptive(AdaptivePolicy):
+class PPOAdaptive(PortableAgent, AdaptivePolicy):
     """A PPO agent choosing m of the candidates at every step from the filter's belief.
 
     ``checkpoint``: load a trained agent (``OUT/adaptive.zip``); otherwise ``fit`` trains one with

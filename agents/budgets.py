@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import copy
 import dataclasses
 import json
@@ -30,7 +31,8 @@ from .tables import budget_table
 def evaluate_budgets(task: PlacementTask, budgets: Sequence[int], scenario: Scenario | None = None,
                      policies: Sequence[str | PlacementPolicy] | str = DEFAULT_POLICIES, *,
                      registry: Mapping[str, PolicyFactory] = POLICIES, out: str | Path, resume: bool = False,
-                     log: Callable[[str], None] = print) -> dict[int, dict[str, Any]]:
+                     log: Callable[[str], None] = print,
+                     executor: cf.Executor | None = None) -> dict[int, dict[str, Any]]:
     """:func:`~dks_gym_agents.evaluate.evaluate_placement` at each sensor budget m in ``budgets`` (the task with
     ``n_sensors = m``, ``out/m{m}``), then ``out/budgets.md`` and ``out/budgets.png``: per policy and budget the
     time-averaged MSE and its paired log ratio to the random layouts of the same episodes, with the standard
@@ -41,6 +43,7 @@ def evaluate_budgets(task: PlacementTask, budgets: Sequence[int], scenario: Scen
     ``resume``: keep the budgets an earlier call with the same settings wrote to ``out`` (each budget's
     ``placement.json.gz`` is written when that budget is done) instead of rerunning them, and show every budget
     in ``out`` in the table and figure: an interrupted sweep goes on where it stopped, a later call adds budgets.
+    ``executor``: where each budget's policies are fitted and run (:func:`~dks_gym_agents.evaluate.evaluate_placement`).
     """
     budgets = sorted({int(m) for m in budgets})
     scenario = Scenario() if scenario is None else scenario
@@ -62,7 +65,7 @@ def evaluate_budgets(task: PlacementTask, budgets: Sequence[int], scenario: Scen
         at_m = dataclasses.replace(task, config=task.config.replace(n_sensors=m))
         fresh = [copy.deepcopy(p) if isinstance(p, PlacementPolicy) else p for p in policies]
         docs[m], _ = evaluate_placement(at_m, fresh, scenario, registry=registry, skip_unfit=True,
-                                        out=out / f"m{m}", log=log)
+                                        out=out / f"m{m}", log=log, executor=executor)
     docs = dict(sorted({**kept, **docs}.items()))
     if kept:
         same_settings(docs, out)

@@ -9,6 +9,7 @@ import click
 
 from dks_gym.benchmarks import BENCHMARKS
 from dks_gym.names import FILTERS, MODEL_KINDS
+from dks_gym.parallel import executor_options, open_executor
 
 from .adaptive import PPOAdaptive
 from .baselines import GREEDY_OBJECTIVES, GreedyLayout
@@ -73,6 +74,7 @@ from .sequential import SequentialLayout
 @click.option("--train-if-missing", is_flag=True, help="Train the latent model when its checkpoint is missing.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Folder for placement.json.gz, placement.md and placement_layouts.png.")
+@executor_options("the policies' fits and test runs and the SHRED trainings")
 def evaluate_placement_command(benchmark: str | None, data_file: Path | None, policies: str, model: str, r: int,
                                filter_: str, preset: str,
                                data_preset: str, n_sensors: int, noise_level: float, noise_seed: int,
@@ -81,13 +83,15 @@ def evaluate_placement_command(benchmark: str | None, data_file: Path | None, po
                                greedy_candidates: int | None,
                                greedy_trajectories: int | None,
                                sequential_ckpt: Path | None, ppo_ckpt: Path | None, agent_timesteps: int | None,
-                               device: str, train_if_missing: bool, out: Path) -> None:
+                               device: str, train_if_missing: bool, out: Path, scheduler: str | None,
+                               workers: int | None) -> None:
     """Rank sensor-placement POLICIES on BENCHMARK's test split (or --data FILE's) with a latent filter in the loop.
 
     Every policy is fitted on the training split, then run on every episode (each test trajectory under each
     of the NOISE_SEEDS noise realizations) with the same noise for all; writes a ranked table (final-time
     and time-averaged MSE, mean and std across episodes, paired comparisons with the paper layout and with
-    the random layouts, costs), a layout figure and a results JSON.
+    the random layouts, costs), a layout figure and a results JSON. --workers N or --scheduler ADDRESS fit
+    and run the policies on local processes or a Dask cluster, with the same results (docs/placement.md).
     """
     from dks_gym.dataset import DatasetMissing, SchemaError
     from dks_gym.evaluation.results import ResultsError
@@ -115,13 +119,15 @@ def evaluate_placement_command(benchmark: str | None, data_file: Path | None, po
                                   device=device, train_if_missing=train_if_missing, kind=filter_,
                                   n_sensors=n_sensors if sweep is None else min(sweep), noise_level=noise_level,
                                   noise_seed=noise_seed)
-        if sweep is not None:
-            evaluate_budgets(task, sweep, scenario, policies, registry=registry, out=out, resume=resume,
-                             log=click.echo)
-        else:
-            evaluate_placement(task, policies, scenario, registry=registry, out=out, log=click.echo)
+        with open_executor(scheduler, workers) as executor:
+            if sweep is not None:
+                evaluate_budgets(task, sweep, scenario, policies, registry=registry, out=out, resume=resume,
+                                 log=click.echo, executor=executor)
+            else:
+                evaluate_placement(task, policies, scenario, registry=registry, out=out, log=click.echo,
+                                   executor=executor)
     except (CheckpointMissing, DatasetMissing, SchemaError, ResultsError, FilterDivergence, FileNotFoundError,
-            ValueError) as exc:
+            ValueError, ImportError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo((out / ("budgets.md" if budgets is not None else "placement.md")).read_text())
 

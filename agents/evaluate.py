@@ -18,6 +18,7 @@ with random layouts in the run every record also gets ``paired_vs_random``, :mod
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import dataclasses
 import time
 from pathlib import Path
@@ -27,8 +28,10 @@ from typing import Any
 import numpy as np
 
 from dks_gym.assimilation import AssimilationResult
+from dks_gym.envs import SensorFaults
 from dks_gym.evaluation.conformance import stamp_protocol
 from dks_gym.evaluation.results import save_results
+from dks_gym.parallel import map_tasks
 
 from .figures import layout_figure
 from .paired import add_paired_vs_random
@@ -61,24 +64,44 @@ def evaluate_policy(task: PlacementTask, policy: PlacementPolicy, trajectories: 
     return PolicyResult(policy, result, layouts, per_decision)
 
 
-def fit_policies(task: PlacementTask, policies: list[PlacementPolicy], *, skip_unfit: bool,
-                 log: Callable[[str], None]) -> dict[str, str]:
-    """Fit every unfitted policy on the training split without faults (a layout is chosen before it breaks);
-    with ``skip_unfit``, drop from ``policies`` those that cannot be fitted and return why, by name."""
+def fit_and_evaluate(task: PlacementTask, policy: PlacementPolicy, faults: SensorFaults | None,
+                     noise_seeds: Sequence[int], skip_unfit: bool) -> tuple[PolicyResult | None, str | None]:
+    """Task: fit ``policy`` on the training split without faults (a layout is chosen before it breaks) unless
+    fitted, then run it on the test episodes with ``faults`` (None: the task's own). Returns its result, or,
+    with ``skip_unfit``, (None, why) for a policy that cannot be fitted (e.g. QR asked for more sensors than
+    the data hold POD modes)."""
+    if policy.task is None:
+        try:
+            policy.fit(task)
+        except ValueError as exc:
+            if not skip_unfit:
+                raise
+            return None, str(exc)
+    if faults is not None:
+        task = dataclasses.replace(task, config=task.config.replace(faults=faults))
+    return evaluate_policy(task, policy, noise_seeds=noise_seeds), None
+
+
+def run_policies(task: PlacementTask, policies: Sequence[PlacementPolicy], faults: SensorFaults | None,
+                 noise_seeds: Sequence[int], *, skip_unfit: bool, log: Callable[[str], None],
+                 executor: cf.Executor | None = None) -> tuple[list[PolicyResult], dict[str, str]]:
+    """:func:`fit_and_evaluate` for every policy, spread over ``executor`` (:func:`~dks_gym.parallel.map_tasks`;
+    with one, the results hold the policies as fitted on the workers), logged and returned in the policies'
+    order; with ``skip_unfit``, the policies that could not be fitted are left out and said why, by name."""
+    results: list[PolicyResult] = []
     skipped: dict[str, str] = {}
-    for policy in list(policies):
-        if policy.task is None:
-            try:
-                policy.fit(task)
-            except ValueError as exc:  # e.g. QR asked for more sensors than the data hold POD modes
-                if not skip_unfit:
-                    raise
-                log(f"{policy.name:>14}: skipped at m = {task.n_sensors} ({exc})")
-                skipped[policy.name] = str(exc)
-                policies.remove(policy)
-    if not policies:
+    tasks = [(task, policy, faults, noise_seeds, skip_unfit) for policy in policies]
+    for policy, (pr, why) in zip(policies, map_tasks(fit_and_evaluate, tasks, executor)):
+        if pr is None:
+            log(f"{policy.name:>14}: skipped at m = {task.n_sensors} ({why})")
+            skipped[policy.name] = str(why)
+            continue
+        log(f"{pr.name:>14}: fit {pr.policy.fit_seconds:8.2f} s, time-avg MSE {pr.time_mean_mse.mean():.3e}, "
+            f"final MSE {pr.result.final_mse_mean:.3e}")
+        results.append(pr)
+    if not results:
         raise ValueError(f"no policy could be fitted at m = {task.n_sensors}: {skipped}")
-    return skipped
+    return results, skipped
 
 
 def forward_run(task: PlacementTask, results: Sequence[PolicyResult], seeds: Sequence[int]) -> AssimilationResult:
@@ -93,16 +116,19 @@ def forward_run(task: PlacementTask, results: Sequence[PolicyResult], seeds: Seq
 
 
 def shred_rows(task: PlacementTask, results: Sequence[PolicyResult], scenario: Scenario, seeds: Sequence[int],
-               skipped: dict[str, str], log: Callable[[str], None]) -> list[dict[str, Any]]:
-    """The scenario's SHRED baselines as records; one whose policy is not in the run goes to ``skipped``."""
-    records = []
+               skipped: dict[str, str], log: Callable[[str], None],
+               executor: cf.Executor | None = None) -> list[dict[str, Any]]:
+    """The scenario's SHRED baselines as records, trained over ``executor``; one whose policy is not in the run
+    goes to ``skipped``."""
+    by_name = {pr.name: pr for pr in results}
     for name in scenario.shred:
-        pr = next((pr for pr in results if pr.name == name), None)
-        if pr is None:
+        if name not in by_name:
             log(f"{'shred-' + name:>14}: skipped ({name!r} is not in this run)")
             skipped[f"shred-{name}"] = f"{name!r} is not in this run"
-            continue
-        rec = evaluate_shred(task, pr, seeds, scenario.shred_config, progress=True)
+    tasks = [(task, by_name[name], seeds, scenario.shred_config, executor is None)
+             for name in scenario.shred if name in by_name]
+    records = []
+    for rec in map_tasks(evaluate_shred, tasks, executor):
         log(f"{rec['policy']:>14}: fit {rec['fit_seconds']:8.2f} s, time-avg MSE {rec['time_mean_mse_mean']:.3e}, "
             f"final MSE {rec['final_mse_mean']:.3e} (POD floor {rec['pod_floor_time_mean_mse']:.1e})")
         records.append(rec)
@@ -118,6 +144,7 @@ def evaluate_placement(
     skip_unfit: bool = False,
     out: str | Path | None = None,
     log: Callable[[str], None] = print,
+    executor: cf.Executor | None = None,
 ) -> tuple[dict[str, Any], list[PolicyResult]]:
     """Fit and run ``policies`` on the task's test split under ``scenario`` (default: one noise seed, no
     faults, every fluid cell); write JSON, table and figure to ``out``.
@@ -127,7 +154,10 @@ def evaluate_placement(
     :class:`PlacementPolicy` objects. Episodes: every test trajectory under the scenario's noise seeds, from
     the task's own. Learned policies built here save their checkpoints and learning curves under
     ``out/agents``. ``skip_unfit``: leave out (and record in ``config.skipped_policies``) a policy that cannot
-    be fitted, e.g. QR with more sensors than the data have POD modes, instead of stopping.
+    be fitted, e.g. QR with more sensors than the data have POD modes, instead of stopping. ``executor``
+    (``distributed.Client.get_executor()``, a process pool; default: this process) fits and runs the policies,
+    then trains the SHRED baselines, on its workers (:func:`~dks_gym.parallel.map_tasks`): the same documents
+    but for the measured times; the results then hold the policies as fitted there.
     """
     start = time.perf_counter()
     scenario = Scenario() if scenario is None else scenario
@@ -137,17 +167,12 @@ def evaluate_placement(
     out = Path(out) if out is not None else None
     chosen = make_policies(policies, registry, agents=None if out is None else out / "agents")
     seeds = scenario.seeds(task)
-    skipped = fit_policies(task, chosen, skip_unfit=skip_unfit, log=log)
+    results, skipped = run_policies(task, chosen, scenario.faults, seeds, skip_unfit=skip_unfit, log=log,
+                                    executor=executor)
     if scenario.faults is not None:
         task = dataclasses.replace(task, config=task.config.replace(faults=scenario.faults))
-    results = []
-    for policy in chosen:
-        pr = evaluate_policy(task, policy, noise_seeds=seeds)
-        log(f"{policy.name:>14}: fit {policy.fit_seconds:8.2f} s, time-avg MSE {pr.time_mean_mse.mean():.3e}, "
-            f"final MSE {pr.result.final_mse_mean:.3e}")
-        results.append(pr)
     forward = forward_run(task, results, seeds)
-    estimators = shred_rows(task, results, scenario, seeds, skipped, log)
+    estimators = shred_rows(task, results, scenario, seeds, skipped, log, executor)
     doc = placement_document(task, results, forward, wall_time=time.perf_counter() - start)
     doc["records"].extend(estimators)
     doc = add_paired_vs_random(doc)
@@ -161,4 +186,4 @@ def evaluate_placement(
     return doc, results
 
 
-__all__ = ["evaluate_placement", "evaluate_policy", "fit_policies", "forward_run", "shred_rows"]
+__all__ = ["evaluate_placement", "evaluate_policy", "fit_and_evaluate", "forward_run", "run_policies", "shred_rows"]

@@ -157,6 +157,30 @@ def load_agent(path: str | Path, task: Any, kind: str, device: str = "cpu") -> t
     return sb3.PPO.load(path, device=device), meta
 
 
+class PortableAgent:
+    """Mixin of the learned policies (their SB3 agent in ``self.agent``): pickled, e.g. to a worker of
+    :func:`dks_gym.parallel.map_tasks` and back, the agent travels as the bytes of its own checkpoint format
+    (``PPO.save``, the weights and settings, not the training environment, which cannot be pickled)."""
+
+    def __getstate__(self) -> dict[str, Any]:
+        import io
+
+        state = self.__dict__.copy()
+        if state.get("agent") is not None:
+            buffer = io.BytesIO()
+            state["agent"].save(buffer)
+            state["agent"] = (buffer.getvalue(), str(state["agent"].device))
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        import io
+
+        if isinstance(state.get("agent"), tuple):
+            data, device = state["agent"]
+            state["agent"] = _sb3().PPO.load(io.BytesIO(data), device=device)
+        self.__dict__.update(state)
+
+
 def _plain(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return obj.tolist()

@@ -31,7 +31,7 @@ from gymnasium import spaces
 
 from .baselines import PaperLayout
 from .policies import PlacementTask, StaticPolicy, candidate_lattice
-from .rl import learn_ppo, load_agent, offline_seconds, record_ppo_run, trainer_command
+from .rl import PortableAgent, learn_ppo, load_agent, offline_seconds, record_ppo_run, trainer_command
 from .scoring import forward_reference, run_layouts
 
 
@@ -224,7 +224,7 @@ def train_sequential(task: PlacementTask, *, timesteps: int = 16384, n_envs: int
     return agent, meta
 
 
-class SequentialLayout(StaticPolicy):
+class SequentialLayout(PortableAgent, StaticPolicy):
     """The static layout of a PPO agent trained on the placement MDP (its deterministic rollout).
 
     ``checkpoint``: load a trained agent (``OUT/sequential.zip``); otherwise ``fit`` trains one with

@@ -44,6 +44,11 @@ def set_threads(n: int | None) -> None:
     _override = n
 
 
+def thread_override() -> int | None:
+    """The count :func:`set_threads` fixed, or None (a worker of :mod:`dks_gym.parallel` gets the caller's)."""
+    return _override
+
+
 def threads_for(task: str) -> int | None:
     """The torch thread count ``task`` runs with (None: torch's current count); see the module docstring."""
     if task not in TASK_THREADS:

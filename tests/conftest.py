@@ -90,3 +90,31 @@ def make_synthetic(tmp_path: Path):
         return path
 
     return make
+
+
+@pytest.fixture(scope="session")
+def dask_client():
+    """A client of a Dask LocalCluster of two single-threaded workers in this process (started in about a
+    second; dks_gym.parallel pickles every task and result itself, so they travel as to a real cluster)."""
+    distributed = pytest.importorskip("distributed", reason="dask distributed is optional (pip install "
+                                                            "'dks-gym[cluster]')")
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None)
+    client = distributed.Client(cluster)
+    yield client
+    client.close()
+    cluster.close()
+
+
+#: What a run measures rather than computes (wall times, when it ran): the only fields that differ between two
+#: runs of the same thing.
+MEASURED = frozenset({"da_step_seconds", "wall_time", "wall_time_s", "created", "fit_seconds", "offline_seconds",
+                      "decision_seconds", "train_seconds"})
+
+
+def without_times(doc):
+    """A results document with the measured fields (:data:`MEASURED`) taken out, everywhere in it."""
+    if isinstance(doc, dict):
+        return {k: without_times(v) for k, v in doc.items() if k not in MEASURED}
+    if isinstance(doc, list):
+        return [without_times(v) for v in doc]
+    return doc

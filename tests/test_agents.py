@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import pickle
 import sys
 from pathlib import Path
 
@@ -372,8 +373,11 @@ def test_ppo_smoke_sequential_and_adaptive_with_checkpoints(burgers_task: Placem
     assert (tmp_path / "sequential.zip").exists() and (tmp_path / "sequential_curve.png").exists()
     stored = json.loads((tmp_path / "sequential.json").read_text())["identity"]["dataset"]
     assert stored["path"] == Path(task.dataset.path).name  # the file's name, no machine path
-    trained = SequentialLayout(agent=agent, candidates=np.array(meta["candidates"])).fit(task).layout
+    fitted = SequentialLayout(agent=agent, candidates=np.array(meta["candidates"])).fit(task)
+    trained = fitted.layout
     np.testing.assert_array_equal(SequentialLayout(tmp_path / "sequential.zip").fit(task).layout, trained)
+    # pickled (to a worker of dks_gym.parallel and back) the agent travels as its checkpoint, its env left behind
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(fitted)).choose(task), trained)
 
     agent, meta = train_adaptive(task, timesteps=256, n_envs=2, n_candidates=16, seed=0, out=tmp_path,
                                  ppo_kwargs={"n_steps": 64, "batch_size": 64})
@@ -382,6 +386,7 @@ def test_ppo_smoke_sequential_and_adaptive_with_checkpoints(burgers_task: Placem
     live = PPOAdaptive(agent=agent, candidates=np.array(meta["candidates"])).fit(task)
     loaded = PPOAdaptive(tmp_path / "adaptive.zip").fit(task)
     np.testing.assert_array_equal(loaded.decide(belief), live.decide(belief))
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(live)).decide(belief), live.decide(belief))
     other = dataclasses.replace(task, config=AssimilationConfig(n_sensors=5))
     with pytest.raises(ValueError, match="n_sensors"):
         PPOAdaptive(tmp_path / "adaptive.zip").fit(other)
@@ -670,6 +675,34 @@ def test_custom_policy_objects_are_ranked_beside_named_ones(burgers_task, tmp_pa
         make_policies([Clustered(), Clustered()])
     with pytest.raises(ValueError, match="unknown policies"):
         make_policies("paper,best")
+
+
+def test_evaluate_placement_on_a_dask_cluster_writes_what_the_serial_run_writes(burgers_task, dask_client,
+                                                                               tmp_path: Path) -> None:
+    """The policies fitted and run, and a SHRED baseline trained, on a two-worker LocalCluster: the same
+    document but for the measured times, the same table once those are masked, the same figure."""
+    import re
+
+    from dks_gym.evaluation.results import load_results
+    from dks_gym.models.shred import ShredConfig
+    from dks_gym_agents.evaluate import evaluate_placement
+    from dks_gym_agents.scenario import Scenario
+    from tests.conftest import without_times
+
+    task = dataclasses.replace(burgers_task, config=AssimilationConfig(n_sensors=4))
+    scenario = Scenario(shred=["qr"], shred_config=ShredConfig(epochs=2, noise_seeds=1, rank=4))
+    for name, executor in (("serial", None), ("dask", dask_client.get_executor(pure=False))):
+        _, results = evaluate_placement(task, "paper,qr", scenario, out=tmp_path / name, log=lambda _: None,
+                                        executor=executor)
+    assert [pr.name for pr in results] == ["paper", "qr"] and results[1].policy.layout is not None
+    serial, spread = (load_results(tmp_path / name / "placement.json.gz") for name in ("serial", "dask"))
+    assert [r["policy"] for r in serial["records"]] == ["paper", "qr", "forward", "shred-qr"]
+    assert without_times(spread) == without_times(serial)
+    timeless = [re.sub(r"[0-9.e+-]+ m?s \|", "t |", (tmp_path / name / "placement.md").read_text())
+                for name in ("serial", "dask")]
+    assert timeless[0] == timeless[1] and "| t | t |" in timeless[0]
+    assert (tmp_path / "dask" / "placement_layouts.png").read_bytes() == \
+        (tmp_path / "serial" / "placement_layouts.png").read_bytes()
 
 
 def test_paired_vs_random_from_a_results_document(tmp_path: Path) -> None:

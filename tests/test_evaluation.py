@@ -320,6 +320,29 @@ def test_koopman_ekf_beats_its_forward_run_after_short_training(reproduced) -> N
         assert mse("ekf", initial) < mse("forward", initial)
 
 
+def test_reproduce_on_a_dask_cluster_writes_what_the_serial_run_writes(models, home: Path, dask_client,
+                                                                      tmp_path: Path) -> None:
+    """--scheduler loads the models and makes the runs on a two-worker LocalCluster: the results but for their
+    measured times, and the tables but for their date, are those of a serial run."""
+    import re
+
+    from dks_gym.evaluation.reproduce import reproduce
+    from tests.conftest import without_times
+
+    reproduce("burgers", data_preset="small", only=["operator_norm"], models=["koopman", "pdmd"],
+              out=tmp_path / "serial", train=False, progress=False, log=lambda _: None)
+    result = CliRunner().invoke(reproduce_command, ["burgers", "--data-preset", "small", "--only", "operator_norm",
+                                                    "--model", "koopman", "--model", "pdmd", "--no-train",
+                                                    "--out", str(tmp_path / "dask"),
+                                                    "--scheduler", dask_client.scheduler.address])
+    assert result.exit_code == 0, result.output + repr(result.exception)
+    serial, spread = (load_results(tmp_path / name / "results.json.gz") for name in ("serial", "dask"))
+    assert len(serial["records"]) == 4 and len(serial["models"]) == 2
+    assert without_times(spread) == without_times(serial)
+    tables = [re.sub(r"Created \S+", "", (tmp_path / name / "tables.md").read_text()) for name in ("serial", "dask")]
+    assert tables[0] == tables[1]
+
+
 def test_missing_model_without_training_fails_clearly(home: Path, tmp_path: Path, models) -> None:
     result = CliRunner().invoke(reproduce_command, ["burgers", "--data-preset", "small", "--only", "latent",
                                                     "--out", str(tmp_path), "--no-train"])

@@ -9,6 +9,7 @@ import click
 
 from ..benchmarks import BENCHMARKS
 from ..names import FILTERS, MODEL_KINDS
+from ..parallel import executor_options, open_executor
 from .reproduce import EXPERIMENTS
 
 
@@ -21,7 +22,7 @@ def _errors() -> tuple[type[BaseException], ...]:
     from .results import ResultsError
 
     return (CheckpointMissing, DatasetMissing, SchemaError, GeneratorUnavailable, DataHomeError, ResultsError,
-            FilterDivergence, ValueError)
+            FilterDivergence, ValueError, ImportError)
 
 
 @click.command("reproduce")
@@ -41,9 +42,10 @@ def _errors() -> tuple[type[BaseException], ...]:
 @click.option("--skip-done", is_flag=True,
               help="Keep the runs already in OUT/results.json.gz instead of rerunning them (continue a stopped run).")
 @click.option("--noise-seed", type=int, default=0, show_default=True, help="Seed of the measurement noise.")
+@executor_options("the independent trainings and filter runs")
 def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None, only: tuple[str, ...],
                       models: tuple[str, ...], data_preset: str, no_train: bool, skip_done: bool,
-                      noise_seed: int) -> None:
+                      noise_seed: int, scheduler: str | None, workers: int | None) -> None:
     """Run the paper's Section IV experiments on BENCHMARK; write results.json.gz, tables.md and figures/.
 
     Experiments: main (forward vs EKF, approximate and exact IC), enkf, ensemble (n = 20/40/64), noise
@@ -51,15 +53,16 @@ def reproduce_command(benchmark: str, preset: str, device: str, out: Path | None
     known, estimated with the state, or at the prior's mean). Missing models
     are trained (finished trainings are reused, interrupted ones resumed). The results file is rewritten
     after every run; a rerun keeps the records of the experiments it does not run, and --skip-done continues
-    an interrupted run with the runs still missing.
+    an interrupted run with the runs still missing. --workers N or --scheduler ADDRESS spread the independent
+    trainings and runs over local processes or a Dask cluster, with the same results (docs/reproduce.md).
     """
     from .reproduce import reproduce
 
     try:
-        reproduce(benchmark.lower(), preset=preset, device=device, out=out, only=only or None,
-                  models=models or None, data_preset=data_preset, train=not no_train, skip_done=skip_done,
-                  noise_seed=noise_seed,
-                  log=click.echo)
+        with open_executor(scheduler, workers) as executor:
+            reproduce(benchmark.lower(), preset=preset, device=device, out=out, only=only or None,
+                      models=models or None, data_preset=data_preset, train=not no_train, skip_done=skip_done,
+                      noise_seed=noise_seed, log=click.echo, executor=executor)
     except _errors() as exc:
         raise click.ClickException(str(exc)) from exc
 

@@ -14,9 +14,10 @@ records that leave it, :mod:`dks_gym.evaluation.conformance`), ``tables.md`` (ou
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import platform
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -27,6 +28,7 @@ from ..assimilation.config import PAPER_P0, PAPER_Q
 from ..benchmarks.protocol import get_protocol
 from ..dataset import Dataset
 from ..models import LatentModel
+from ..parallel import map_tasks
 from .conformance import PROTOCOL_KEY, stamp_protocol
 from .experiment import EXPERIMENTS, Run, Section
 from .figures import MODEL_LABELS
@@ -132,6 +134,29 @@ def _model_info(model: LatentModel, kind: str, r: int, T: int, preset: str, data
     return info
 
 
+def _prepared_model(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Dataset, device: str,
+                    train: bool, progress: bool) -> tuple[LatentModel, dict[str, Any]]:
+    """Task: the model ``key`` (kind, r, T), trained and tuned here when missing and ``train`` (each training
+    under its checkpoint's lock), and its entry of the results file's ``models``."""
+    from ..models import load_model
+
+    kind, r, T = key
+    model = load_model(benchmark, kind, r=r, preset=preset, T=T, dataset=dataset, device=device,
+                       train_if_missing=train, progress=progress)
+    if train:  # a model trained here is tuned here too (Q="calibrated" needs its scale)
+        tune_if_missing(model, dataset, progress=progress)
+    return model, _model_info(model, kind, r, T, preset, dataset)
+
+
+def _assimilate(model: LatentModel, dataset: Dataset, config: AssimilationConfig, single: bool, calibrated: bool,
+                description: str, progress: bool) -> AssimilationResult:
+    """Task: one batched run of :func:`run_assimilation` over the test split (``single``: its first trajectory)."""
+    # The predictive std (r decoder JVPs per step) is scored where it is reported: the calibrated filters.
+    # The paper's experiments compare errors only, and on the CFD grids the std would triple their cost.
+    return run_assimilation(model, dataset, config, trajectories=[0] if single else None, progress=progress,
+                            description=description, uncertainty=calibrated)
+
+
 def _trained(benchmark: str, key: tuple[str, int, int], preset: str, dataset: Dataset) -> bool:
     """Whether ``load_model`` finds model ``key`` (kind, r, T) without training (:func:`locate_model`)."""
     from ..models.lookup import locate_model
@@ -200,38 +225,47 @@ class Reproduction:
     results: dict[tuple, AssimilationResult] = field(default_factory=dict)  # by Run.cache_key
     records: list[Record] = field(default_factory=list)
     doc: ResultsDocument | None = None
+    pending: Iterator[tuple[tuple, AssimilationResult]] = field(default_factory=lambda: iter(()))
 
-    def model(self, key: tuple[str, int, int]) -> LatentModel:
-        """The model (kind, r, T), loaded once (trained here when missing, with its own progress bar)."""
-        if key not in self.models:
-            from ..models import load_model
-
-            kind, r, T = key
-            model = load_model(self.benchmark, kind, r=r, preset=self.preset, T=T, dataset=self.dataset,
-                               device=self.device, train_if_missing=self.train, progress=self.progress)
-            if self.train:  # a model trained here is tuned here too (Q="calibrated" needs its scale)
-                tune_if_missing(model, self.dataset, progress=self.progress)
+    def prepare(self, keys: Iterable[tuple[str, int, int]], executor: cf.Executor | None = None) -> None:
+        """Load the models (kind, r, T) of ``keys``, in order, each once: trained when missing (and allowed),
+        independent trainings spread over ``executor`` (:func:`~dks_gym.parallel.map_tasks`)."""
+        keys = [key for key in dict.fromkeys(keys) if key not in self.models]
+        tasks = [(self.benchmark, key, self.preset, self.dataset, self.device, self.train,
+                  self.progress and executor is None) for key in keys]
+        for key, (model, info) in zip(keys, map_tasks(_prepared_model, tasks, executor)):
             self.models[key] = model
-            self.infos.append(_model_info(model, kind, r, T, self.preset, self.dataset))
-        return self.models[key]
+            self.infos.append(info)
+
+    def computations(self, todo: Iterable[Run], executor: cf.Executor | None = None) -> None:
+        """Start the distinct computations of the runs ``todo`` (experiments repeat identical runs), in order of
+        first need, spread over ``executor``; :meth:`run` takes their results in that order."""
+        first: dict[tuple, Run] = {}
+        for run in todo:
+            if run.cache_key not in self.results:
+                first.setdefault(run.cache_key, run)
+        runs = list(first.values())
+        self.prepare([run.model_key for run in runs], executor)
+        tasks = [(self.models[run.model_key], self.dataset, self._config(run), run.single, run.calibrated,
+                  f"{run.model} {run.filter}", self.progress and executor is None) for run in runs]
+        self.pending = zip([run.cache_key for run in runs], map_tasks(_assimilate, tasks, executor))
+
+    def _config(self, run: Run) -> AssimilationConfig:
+        config = self.base.replace(kind=run.filter, initial=run.initial, noise_level=run.noise,
+                                   n_members=run.n_members, parameter=run.parameter)
+        return config.replace(Q="calibrated", P0="calibrated") if run.calibrated else config
 
     def run(self, experiment: str, run: Run) -> None:
-        """Run (or reuse) ``run`` for ``experiment``, add its record and rewrite the results and tables."""
+        """Add the record of ``run`` for ``experiment`` (kept, or computed by :meth:`computations`, whose results
+        arrive in order), then rewrite the results and tables."""
         if run.record_key(experiment) in self.kept:
             self.records.append(self.kept[run.record_key(experiment)])
             return
         if run.cache_key not in self.results:
-            config = self.base.replace(kind=run.filter, initial=run.initial, noise_level=run.noise,
-                                       n_members=run.n_members, parameter=run.parameter)
-            if run.calibrated:
-                config = config.replace(Q="calibrated", P0="calibrated")
-            # The predictive std (r decoder JVPs per step) is scored where it is reported: the calibrated
-            # filters. The paper's experiments compare errors only, and on the CFD grids the std would
-            # triple their cost.
-            self.results[run.cache_key] = run_assimilation(
-                self.model(run.model_key), self.dataset, config, trajectories=[0] if run.single else None,
-                progress=self.progress, description=f"{run.model} {run.filter}", uncertainty=run.calibrated,
-            )
+            key, result = next(self.pending)
+            if key != run.cache_key:  # pragma: no cover - computations() orders them as the runs ask
+                raise RuntimeError(f"the runs arrived out of order: {key} instead of {run.cache_key}")
+            self.results[key] = result
         self.records.append(make_record(self.results[run.cache_key], experiment=experiment, T=run.T,
                                         keep_curves=experiment == "main"))
         self.save()
@@ -297,6 +331,7 @@ def reproduce(
     filter_seed: int = 0,
     progress: bool = True,
     log: Callable[[str], None] = print,
+    executor: cf.Executor | None = None,
 ) -> ResultsDocument | dict[str, Any]:
     """Run the selected experiments, write results.json.gz, tables.md and figures to ``out``; return the results.
 
@@ -304,6 +339,11 @@ def reproduce(
     an interrupted run keeps every finished run (and every finished or partial training). ``skip_done``
     keeps the runs already in ``out/results.json.gz`` instead of rerunning them: rerun with it to continue.
     Before starting it logs how many runs are left and which models must be trained first.
+
+    ``executor`` (a process pool, ``distributed.Client.get_executor()``; default: this process) runs the
+    independent trainings, then the filter runs, on its workers (:func:`~dks_gym.parallel.map_tasks`); their
+    results are recorded in the same order as in a serial run, so the files are the same but for the
+    measured times (the timing experiment's step times are measured beside the other workers' runs).
     """
     from tqdm.auto import tqdm
 
@@ -316,6 +356,7 @@ def reproduce(
     session = _open(benchmark, preset, device, out, ds, train, skip_done, noise_seed, filter_seed, progress)
     session.doc = session.previous
     left = _announce(session, pairs, log)
+    session.computations([run for name, run in pairs if run.record_key(name) not in session.kept], executor)
     bar = tqdm(total=len(pairs), initial=len(pairs) - left, desc=f"reproduce {benchmark}", unit="run",
                disable=not progress, dynamic_ncols=True)
     for experiment, run in pairs:

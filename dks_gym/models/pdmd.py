@@ -265,7 +265,9 @@ class PDMD(LatentModel):
             # the number as a diagnostic (``dmd_condition_number``) instead of repeating the warning.
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                pdmd.fit(coeffs, self.train_params.cpu().numpy())
+                # a copy: PyDMD keeps the array, and a view would dangle once torch moves the tensor's storage
+                # (share_memory_(), which a process pool's pickler calls)
+                pdmd.fit(coeffs, self.train_params.cpu().numpy().copy())
             self.dmd_condition_number = None
             for w in caught:
                 found = _CONDITION_WARNING.match(str(w.message))
