@@ -17,7 +17,8 @@ def test_perf_benchmark_writes_every_section(burgers_small: Path, tmp_path: Path
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "perf.py"), "--quick", "--out", str(out)], check=True,
                    env=env, cwd=tmp_path, capture_output=True, timeout=600)
     result = json.loads(out.read_text())
-    assert set(result) == {"machine", "env", "jacobian", "ekf", "enkf", "algebra", "torchkf", "vector", "training"}
+    assert set(result) == {"machine", "env", "jacobian", "ekf", "enkf", "algebra", "torchkf", "vector", "uncertainty",
+                           "training"}
     assert result["machine"]["torch_threads"] == 1 and len(result["machine"]["loadavg_end"]) == 3
     # The sensor-local Jacobian the benchmark times is the one autodiff through the whole decoder gives.
     assert result["jacobian"]["max_relative_difference"] < 1e-5
