@@ -152,6 +152,27 @@ def test_padded_grid_decodes_to_the_grid_and_its_sensor_jacobian_is_the_derivati
 
 
 # The env, training and the filter ------------------------------------------------------------------------------
+def test_padded_2d_grid_reads_its_sensors_from_their_windows_as_the_whole_decode() -> None:
+    """84 x 84 pads to 88 x 88 (11 x 11 bottleneck cells, a 7 x 7 window): the members' sensor readings from their
+    windows must be the whole (cropped) decode's at the same flat indices of the 84 x 84 grid, far corner too."""
+    from dks_gym.models import build_model
+
+    bench = CustomBenchmark(name="plate", grid=(84, 84), channels=("u",), observed_channel="u",
+                            scored_channels=("u",), param_name="a", param_range=(1.0, 2.0), dt=0.1, n_frames=4,
+                            n_train=2, n_test=1)
+    model = build_model(bench, "mlp", r=4, preset="lite", seed=0).double().eval()
+    assert model.decoder.crop is not None and model.decoder.window() == (7, 7)
+    mu = torch.tensor([1.0, 1.5], dtype=torch.float64)
+    z = torch.randn(2, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    sensors = np.array([0, 85, 84 * 40 + 83, 84 * 83 + 7, 84 * 84 - 1])
+    with torch.no_grad():
+        whole = model.decode(z, mu).flatten(2)[:, 0, sensors]
+        torch.testing.assert_close(model.observe(z, mu, sensors, "u"), whole, rtol=1e-10, atol=1e-12)
+        per_row = np.stack([sensors, sensors[::-1]])  # one layout per row: the windows path without the cache
+        torch.testing.assert_close(model.observe(z, mu, per_row, "u"),
+                                   model.decode(z, mu).flatten(2)[:, 0].gather(1, torch.as_tensor(per_row)))
+
+
 def test_custom_env_steps_with_noise_faults_select_mode_and_render(heat_file) -> None:
     path, bench = heat_file
     env = gym.make("DKS/Custom-v0", data_path=str(path), sensor_mode="select", noise_level=0.1,

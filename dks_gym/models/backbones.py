@@ -353,8 +353,9 @@ class ConvDecoder(nn.Module):
 
     def _window_starts(self, cells: torch.Tensor) -> list[list[torch.Tensor]]:
         """Per stage, per axis, the window starts of flat output ``cells`` (k,); last, the cells' coordinates."""
-        grid = tuple(b * 2 ** len(self.deconv) for b in self.bottleneck[1:])
-        coords = torch.unravel_index(cells, grid)  # per axis (k,)
+        # Flat indices of the output grid: a padded grid's output is its lower corner (the crop keeps [0, n) per
+        # axis), so a cell's coordinates are the same on both, but the flat index unravels by the output grid.
+        coords = torch.unravel_index(cells, self.grid)  # per axis (k,)
         plans = [torch.as_tensor(self._cell_windows(b)[1], device=cells.device) for b in self.bottleneck[1:]]
         return [[s[i][c] for s, c in zip(plans, coords)] for i in range(len(self.deconv))] + [list(coords)]
 
