@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
 from ..benchmarks import BENCHMARKS, Benchmark, CustomBenchmark, GeneratedData
@@ -64,6 +65,14 @@ class ImportedFlow:
     @property
     def dt(self) -> float:
         return uniform_step(self.time, "the imported time axis")
+
+
+def open_source(path: Path) -> h5py.File:
+    """A source file of an importer, open for reading; a LayoutError naming it where HDF5 cannot read it."""
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise LayoutError(f"{path} is not a readable HDF5 file ({exc})") from exc
 
 
 def uniform_step(time: np.ndarray, where: str) -> float:

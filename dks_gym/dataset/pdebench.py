@@ -34,7 +34,8 @@ import h5py
 import numpy as np
 
 from ..atomic import atomic_path
-from .importing import ImportedFlow, LayoutError, benchmark_name, check_finite, uniform_step, write_imported
+from .importing import (ImportedFlow, LayoutError, benchmark_name, check_finite, open_source, uniform_step,
+                        write_imported)
 from .reader import Dataset
 from .schema import SPLITS
 
@@ -62,11 +63,7 @@ def viscosity_from_name(path: str | Path) -> float:
 def _inspect(path: Path) -> tuple[int, np.ndarray, np.ndarray]:
     """(n_traj, time (n_t,), x (n_x,)) of one file, checked against PDEBench's 1D layout."""
     where = str(path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise LayoutError(f"{where} is not a readable HDF5 file ({exc})") from exc
-    with f:
+    with open_source(path) as f:
         for name in ("tensor", "x-coordinate", "t-coordinate"):
             if name not in f or not isinstance(f[name], h5py.Dataset):
                 raise LayoutError(f"{where}: missing dataset {name!r} (PDEBench's 1D files hold 'tensor' "

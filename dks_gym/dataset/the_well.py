@@ -53,7 +53,8 @@ import h5py
 import numpy as np
 
 from ..atomic import atomic_path
-from .importing import ImportedFlow, LayoutError, benchmark_name, check_finite, uniform_step, write_imported
+from .importing import (ImportedFlow, LayoutError, benchmark_name, check_finite, open_source, uniform_step,
+                        write_imported)
 from .reader import Dataset
 from .schema import AXES, SPLITS, as_str, as_str_list
 
@@ -132,11 +133,7 @@ def _attr(obj: h5py.File | h5py.Group | h5py.Dataset, name: str, where: str) -> 
 def _inspect(path: Path) -> _File:
     """Read one file's description (not its fields) and check it against The Well's layout."""
     where = str(path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise LayoutError(f"{where} is not a readable HDF5 file ({exc})") from exc
-    with f:
+    with open_source(path) as f:
         for name in ROOT_ATTRS:
             _attr(f, name, where)
         parameters = {p: _attr(f, p, where) for p in as_str_list(f.attrs["simulation_parameters"],
