@@ -265,6 +265,19 @@ def test_a_file_breaking_the_pdebench_layout_names_what_is_missing(pdebench, tmp
     assert "Nu0.01.hdf5" in str(err.value) and not (tmp_path / "x.h5").exists()
 
 
+def test_a_source_that_is_not_hdf5_names_itself_and_writes_nothing(well, pdebench, tmp_path: Path) -> None:
+    root, _ = well
+    stem = WELL_FILES["train"][0][0]
+    (root / "data" / "train" / f"{stem}.hdf5").write_text("not HDF5")
+    with pytest.raises(LayoutError, match=rf"{stem}.hdf5 is not a readable HDF5 file"):
+        import_the_well(root, tmp_path / "w.h5")
+    paths, _ = pdebench
+    paths[0].write_bytes(b"\x00" * 64)
+    with pytest.raises(LayoutError, match=rf"{paths[0].name} is not a readable HDF5 file"):
+        import_pdebench(paths, tmp_path / "p.h5")
+    assert not (tmp_path / "w.h5").exists() and not (tmp_path / "p.h5").exists()
+
+
 def test_pdebench_name_and_split_errors(pdebench, tmp_path: Path) -> None:
     paths, _ = pdebench
     renamed = paths[1].rename(tmp_path / "burgers.hdf5")
