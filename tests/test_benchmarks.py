@@ -30,6 +30,9 @@ def test_perf_benchmark_writes_every_section(burgers_small: Path, tmp_path: Path
     # The step timed against torch-kf computes what torch-kf computes (float32 round-off).
     assert [row["batch"] for row in result["torchkf"]["rows"]] == [4, 16]
     assert all(d < 1e-5 for row in result["torchkf"]["rows"] for d in row["max_relative_difference"].values())
+    assert [row["num_envs"] for row in result["uncertainty"]] == [1, 4]
+    assert all(set(row["ms_per_env_step"]) == {"separate_on", "separate_off", "vector_on", "vector_off"}
+               and row["speedup_on"] > 0 for row in result["uncertainty"])
 
 
 def test_a_partial_perf_run_refreshes_only_its_entries() -> None:

@@ -54,7 +54,7 @@ class LatentFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     :class:`~dks_gym.FilterConfig` with everything else (initial condition, P0, Q, ensemble size, inflation,
     localization, divergence policy, seed); R = sigma^2 I comes from the env.
     ``uncertainty``: put ``estimate_std`` and its scores (``coverage``, ``nees``, ``crps``, ``spread_skill``) in
-    ``info`` (default True; it costs r decoder Jacobian-vector products per step, or one decode per EnKF member:
+    ``info`` (default True; with the EKF it costs a few decodes per step, or one decode per EnKF member:
     False for speed); :class:`~dks_gym.wrappers.Uncertainty` ``(reconstruction_var=...)`` switches it on with
     the decoder's reconstruction-error variance per cell ``(C, *grid)`` of your choice
     (:func:`~dks_gym.assimilation.reconstruction_variance`; default the model's calibrated one).
