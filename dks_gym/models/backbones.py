@@ -141,18 +141,21 @@ class ConvDecoder(nn.Module):
         (B, C_out, *(b * 2**stages)) for a window of ``b`` bottleneck cells (every stage is translation-equivariant,
         so a window's output equals the full output wherever its receptive field stays inside the window).
 
-        Out of training mode (filters, evaluation) the rows go through in blocks of about 2^17 output cells and a
-        stride-1 transposed convolution runs as the equivalent plain one: the same numbers to float32 round-off,
-        4-6x faster on CPU for large batches (benchmarks/perf.py). Training keeps torch's ConvTranspose on the
-        whole batch, so that a checkpoint trains to the same weights as before.
+        The rows go through in blocks of about 2^17 output cells and a stride-1 transposed convolution runs as the
+        equivalent plain one (:func:`_stride_one_transposed`), in training as out of it: the same numbers as
+        torch's ConvTranspose on the whole batch to float32 round-off, 4-6x faster on CPU for large batches
+        (benchmarks/perf.py). :meth:`reference_convolve` is torch's ConvTranspose, kept for the tests.
         """
-        if self.training:
-            return self._convolve(h, fast=False)
         cells = math.prod(h.shape[2:]) * 2 ** (len(self.deconv) * self.ndim)
         rows = max(1, (1 << 17) // cells)
         if h.shape[0] <= rows:
             return self._convolve(h, fast=True)
         return torch.cat([self._convolve(block, fast=True) for block in h.split(rows)])
+
+    def reference_convolve(self, h: torch.Tensor) -> torch.Tensor:
+        """:meth:`convolve` with torch's ConvTranspose layers on the whole batch: the reference it is tested
+        against."""
+        return self._convolve(h, fast=False)
 
     def _convolve(self, h: torch.Tensor, fast: bool) -> torch.Tensor:
         for i, layer in enumerate(self.deconv):
