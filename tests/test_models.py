@@ -285,18 +285,38 @@ def test_sphere_sensor_local_jacobian_equals_autodiff_through_the_whole_decoder(
 
 @pytest.mark.parametrize("benchmark", BENCHMARKS)
 def test_decoder_equals_torch_conv_transpose(benchmark):
-    """The decoder runs blocks of rows and stride-1 transposed convolutions as plain ones, in training and out
-    of it; output and weight gradients must be those of torch's ConvTranspose on the whole batch to round-off."""
-    model = _lite(benchmark, "mlp")
-    rows = 2 + (1 << 17) // int(np.prod(model.grid))  # more rows than one block holds
-    h = torch.randn(rows, *model.decoder.bottleneck)
-    decoder = model.decoder.train()
+    """The decoder runs blocks of rows and stride-1 transposed convolutions as plain ones (in training, on the CPU,
+    in channels-last layout); its output, in and out of training, and its weight gradients must be those of
+    torch's ConvTranspose on the whole batch to round-off."""
+    decoder = _lite(benchmark, "mlp").decoder
+    rows = 2 + (1 << 17) // int(np.prod(decoder.bottleneck[1:]) * 2 ** (len(decoder.deconv) * decoder.ndim))
+    h = torch.randn(rows, *decoder.bottleneck)  # more rows than one block holds
+    with torch.no_grad():
+        reference = decoder.reference_convolve(h)
+        torch.testing.assert_close(decoder.eval().convolve(h), reference, rtol=1e-5, atol=1e-6)
+    decoder.train()
     outputs, grads = [], []
     for convolve in (decoder.convolve, decoder.reference_convolve):
-        out = convolve(h)
+        out = convolve(h[:4])
         outputs.append(out.detach())
         grads.append(torch.autograd.grad((out * out).sum(), list(decoder.deconv.parameters())))
-    assert outputs[0].shape == outputs[1].shape
+    torch.testing.assert_close(outputs[0], outputs[1], rtol=1e-5, atol=1e-6)
+    for fast, reference in zip(*grads):
+        torch.testing.assert_close(fast, reference, rtol=1e-4, atol=1e-5 * float(reference.abs().max()))
+
+
+@pytest.mark.parametrize("benchmark", BENCHMARKS)
+def test_training_mode_encoder_equals_the_eval_one(benchmark):
+    """In training on the CPU the encoder convolves in channels-last layout (1D maps as height-1 2D maps):
+    output and weight gradients must be those of the eval-mode encoder (the layers as torch runs them)."""
+    encoder = _lite(benchmark, "mlp").encoder.backbone
+    x = torch.randn(3, encoder.conv[0].in_channels, *BENCHMARK_SHAPES[benchmark].grid)
+    outputs, grads = [], []
+    for training in (True, False):
+        encoder.train(training)
+        out = encoder(x)
+        outputs.append(out.detach())
+        grads.append(torch.autograd.grad((out * out).sum(), list(encoder.conv.parameters())))
     torch.testing.assert_close(outputs[0], outputs[1], rtol=1e-5, atol=1e-6)
     for fast, reference in zip(*grads):
         torch.testing.assert_close(fast, reference, rtol=1e-4, atol=1e-5 * float(reference.abs().max()))

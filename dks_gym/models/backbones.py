@@ -78,6 +78,31 @@ def _fc_jacobian(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     return jac_t.mT
 
 
+def _channels_last(module: nn.Module, h: torch.Tensor) -> bool:
+    """Whether ``module`` convolves the 1D or 2D maps ``h`` in channels-last layout: in training, on the CPU."""
+    return module.training and h.device.type == "cpu" and h.ndim in (3, 4)
+
+
+def _convolution(h: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int, padding: int,
+                 channels_last: bool) -> torch.Tensor:
+    """A plain convolution of 1D, 2D or 3D maps (B, C, *grid).
+
+    ``channels_last`` (training, on the CPU): 1D and 2D maps go through oneDNN in channels-last layout, a 1D map
+    as a map of height 1. The same numbers to float32 round-off; oneDNN's backward is faster on that layout for
+    these few channels (a lite training step 1.2-1.4x, benchmarks/perf.py), and for 1D maps it avoids a
+    backward that took up to tens of ms per layer on a loaded machine. The output keeps the layout, so the next
+    convolution takes it without a copy. Out of training the layout is left alone: inference is unchanged.
+    """
+    if not channels_last or h.ndim not in (3, 4):
+        return _CONV_FN[h.ndim - 2](h, weight, bias, stride=stride, padding=padding)
+    if h.ndim == 3:
+        out = nn.functional.conv2d(h.unsqueeze(2).contiguous(memory_format=torch.channels_last), weight.unsqueeze(2),
+                                   bias, stride=(1, stride), padding=(0, padding))
+        return out.squeeze(2).contiguous()
+    return nn.functional.conv2d(h.contiguous(memory_format=torch.channels_last), weight, bias, stride=stride,
+                                padding=padding)
+
+
 class ConvEncoder(nn.Module):
     """E_phi: strided convolutions, flatten, fully connected layers to r (no parameter residual)."""
 
@@ -95,18 +120,26 @@ class ConvEncoder(nn.Module):
         self.fc = _fc_stack([n_flat, *spec.fc_widths, r])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, C_in, *grid) normalized input -> (B, r)."""
-        return self.fc(self.conv(x).flatten(1))
+        """(B, C_in, *grid) normalized input -> (B, r); in training on the CPU in channels-last layout."""
+        if not _channels_last(self, x):
+            return self.fc(self.conv(x).flatten(1))
+        h = x
+        for layer in self.conv:
+            if isinstance(layer, nn.GELU):
+                h = layer(h)
+            else:
+                h = _convolution(h, layer.weight, layer.bias, layer.stride[0], layer.padding[0], channels_last=True)
+        return self.fc(h.flatten(1))
 
 
-def _stride_one_transposed(layer: nn.Module, h: torch.Tensor) -> torch.Tensor:
+def _stride_one_transposed(layer: nn.Module, h: torch.Tensor, channels_last: bool = False) -> torch.Tensor:
     """A stride-1 transposed convolution computed as the equivalent plain convolution (flipped, transposed
     kernel, padding k - 1 - p): the same numbers to float32 round-off, 2-10x faster on CPU, where torch's
-    oneDNN path for ConvTranspose is slow (benchmarks/perf.py)."""
+    oneDNN path for ConvTranspose is slow (benchmarks/perf.py). ``channels_last``: see :func:`_convolution`."""
     k, p = layer.kernel_size[0], layer.padding[0]
     spatial = tuple(range(2, layer.weight.ndim))
     weight = layer.weight.flip(spatial).transpose(0, 1)
-    return _CONV_FN[h.ndim - 2](h, weight, layer.bias, padding=k - 1 - p)
+    return _convolution(h, weight, layer.bias, 1, k - 1 - p, channels_last)
 
 
 class ConvDecoder(nn.Module):
@@ -144,7 +177,8 @@ class ConvDecoder(nn.Module):
         The rows go through in blocks of about 2^17 output cells and a stride-1 transposed convolution runs as the
         equivalent plain one (:func:`_stride_one_transposed`), in training as out of it: the same numbers as
         torch's ConvTranspose on the whole batch to float32 round-off, 4-6x faster on CPU for large batches
-        (benchmarks/perf.py). :meth:`reference_convolve` is torch's ConvTranspose, kept for the tests.
+        (benchmarks/perf.py). In training on the CPU the maps are in channels-last layout (:func:`_convolution`).
+        :meth:`reference_convolve` is torch's ConvTranspose, kept for the tests.
         """
         cells = math.prod(h.shape[2:]) * 2 ** (len(self.deconv) * self.ndim)
         rows = max(1, (1 << 17) // cells)
@@ -158,15 +192,16 @@ class ConvDecoder(nn.Module):
         return self._convolve(h, fast=False)
 
     def _convolve(self, h: torch.Tensor, fast: bool) -> torch.Tensor:
+        channels_last = fast and _channels_last(self, h)
         for i, layer in enumerate(self.deconv):
             if self.mode == "upsample":
                 h = nn.functional.interpolate(h, scale_factor=2, mode=_UPSAMPLE_MODE[self.ndim])
-                h = _stride_one_transposed(layer, h) if fast else layer(h)
+                h = _stride_one_transposed(layer, h, channels_last) if fast else layer(h)
             else:
                 h = layer(h)
             if i < len(self.deconv) - 1:
                 h = self.act(h)
-        return h
+        return h.contiguous() if channels_last else h
 
     @property
     def receptive_radius(self) -> int:
