@@ -1,12 +1,13 @@
 """The lite schedule's convergence before and after the faster training: validation loss against steps and time.
 
 Trains each neural lite model (r = 32, T = 1, seed 0) of one benchmark on its ``paper`` data with
-``train_model``, into a temporary directory (nothing is written to the data home), and records every
-validation: the step, the training time up to that step (the validations before it included) and the
-validation loss. ``--before`` trains in the formulation and with the schedule the shipped lite models were
-trained with (``perf.before_formulation``, the shipped file's ``schedule``, Adam's plain loop): its losses
-equal those of the shipped models' runs bit for bit (the shipped file's best validation loss is recorded
-beside it). Without it, today's package and lite preset. One torch thread unless ``--threads``.
+``train_model`` and records every validation: the step, the training time up to that step (the validations
+before it included) and the validation loss. The checkpoints go to a temporary directory, or with ``--keep``
+to the data home, where ``dks-gym train`` writes them (``dks-gym demo --train`` then takes them). ``--before``
+trains in the formulation and with the schedule the shipped lite models were trained with
+(``perf.before_formulation``, the shipped file's ``schedule``, Adam's plain loop): its losses are those of
+the shipped models' runs bit for bit (the shipped file's best validation loss is recorded beside it).
+Without it, today's package and lite preset. One torch thread unless ``--threads``.
 
     OMP_NUM_THREADS=1 python benchmarks/training_convergence.py burgers --out after.json
     OMP_NUM_THREADS=1 python benchmarks/training_convergence.py burgers --before --out before.json
@@ -56,8 +57,9 @@ def train_before(benchmark: str, kind: str, dataset: Any, path: Path, **kwargs: 
         training.build_model, training.adam = build, adam
 
 
-def run(benchmark: str, kind: str, before: bool) -> dict[str, Any]:
-    """Train one model; its validation curve (step, seconds, loss) and summary."""
+def run(benchmark: str, kind: str, before: bool, keep: bool = False) -> dict[str, Any]:
+    """Train one model; its validation curve (step, seconds, loss) and summary. ``keep``: write the checkpoint
+    where ``dks-gym train`` writes it (the data home's), so that ``dks-gym demo --train`` takes it."""
     dataset = load_dataset(benchmark, "paper")
     times: dict[int, float] = {}
     start = time.perf_counter()
@@ -66,11 +68,11 @@ def run(benchmark: str, kind: str, before: bool) -> dict[str, Any]:
         times[step] = time.perf_counter() - start  # before this step's validation, after the earlier ones
 
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "model.safetensors"
+        path = None if keep else Path(tmp) / "model.safetensors"
         kwargs = {"path": path, "progress": False, "resume": False, "on_step": on_step}
         result = (train_before(benchmark, kind, dataset, **kwargs) if before else
                   train_model(benchmark, kind, 32, "lite", 1, dataset=dataset, **kwargs))
-        ckpt = read_checkpoint(path, optimizer=False)
+        ckpt = read_checkpoint(result.path, optimizer=False)
     validation = ckpt.training["validation"].tolist()
     meta = ckpt.metadata
     return {"model": kind, "schedule": meta["schedule"], "steps_done": result.steps_done,
@@ -106,6 +108,8 @@ def main() -> None:
     parser.add_argument("benchmark", nargs="?", choices=["burgers", "cylinder", "dambreak"])
     parser.add_argument("--models", nargs="+", default=["koopman", "mlp", "xlstm"])
     parser.add_argument("--before", action="store_true", help="the shipped models' formulation and schedule")
+    parser.add_argument("--keep", action="store_true",
+                        help="write the checkpoints to the data home, as `dks-gym train` does (not with --before)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path)
     parser.add_argument("--plot", nargs=2, type=Path, metavar=("BEFORE", "AFTER"))
@@ -121,7 +125,7 @@ def main() -> None:
                               "command": " ".join(["python benchmarks/training_convergence.py", *sys.argv[1:]]),
                               "runs": []}
     for kind in args.models:
-        result["runs"].append(run(args.benchmark, kind, args.before))
+        result["runs"].append(run(args.benchmark, kind, args.before, args.keep and not args.before))
         row = result["runs"][-1]
         print(f"{args.benchmark} {kind}: best validation loss {row['best_validation_loss']:.4g} at step "
               f"{row['best_step']} of {row['steps_done']}, {row['train_time_s']:.0f} s (shipped model: "

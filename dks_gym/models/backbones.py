@@ -89,9 +89,11 @@ def _convolution(h: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | Non
 
     ``channels_last`` (training, on the CPU): 1D and 2D maps go through oneDNN in channels-last layout, a 1D map
     as a map of height 1. The same numbers to float32 round-off; oneDNN's backward is faster on that layout for
-    these few channels (a lite training step 1.2-1.4x, benchmarks/perf.py), and for 1D maps it avoids a
-    backward that took up to tens of ms per layer on a loaded machine. The output keeps the layout, so the next
-    convolution takes it without a copy. Out of training the layout is left alone: inference is unchanged.
+    these few channels (1.2-1.4x on a whole lite training step, timed interleaved on one thread), and for 1D
+    maps it avoids a backward that took up to tens of ms per layer on the loaded test machine. 2D outputs keep
+    the layout (the next convolution takes them without a copy); 1D outputs are made contiguous again (the GELU
+    and linear upsampling between are slower on the strided height-1 layout). Out of training the layout is
+    left alone: inference is unchanged.
     """
     if not channels_last or h.ndim not in (3, 4):
         return _CONV_FN[h.ndim - 2](h, weight, bias, stride=stride, padding=padding)

@@ -7,6 +7,7 @@ import math
 import torch
 from torch import nn
 
+
 def _generator_mlp(r: int, n_out: int, n_hidden: int) -> nn.Sequential:
     """``n_hidden`` hidden layers of width r with GELU, a linear output, LayerNorm without affine."""
     layers: list[nn.Module] = []

@@ -63,10 +63,10 @@ def resolve_device(device: str | torch.device) -> torch.device:
 def adam(net: torch.nn.Module, lr: float) -> torch.optim.Adam:
     """The optimizer of every training run: Adam at ``lr`` with torch's multi-tensor (``foreach``) update.
 
-    A few operators over all parameters instead of a dozen per tensor: the same update to float round-off, and a
-    tenth of a lite Burgers step was Adam's loop over the 54 tensors of the Koopman model. Not the ``fused``
-    kernel: on the CPU it does not bump the parameters' version counters (torch 2.13), which the Koopman
-    model's operator cache relies on (tests/test_models.py).
+    Its operators take every parameter at once and loop over the tensors in C++ instead of Python: the same
+    update to float round-off; Adam's Python loop over the 54 tensors of the lite Koopman model was 8 % of a
+    Burgers step (docs/performance.md). Not the ``fused`` kernel: on the CPU it does not bump the parameters'
+    version counters (torch 2.13), which the Koopman model's operator cache relies on (tests/test_models.py).
     """
     return torch.optim.Adam(net.parameters(), lr=lr, foreach=True)
 
