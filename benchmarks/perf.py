@@ -18,12 +18,14 @@ keeps every rep's median and the ratio. Sections:
 - ``algebra``: the EKF update with a linear model against filterpy's ``KalmanFilter`` at batch 1 and 256;
 - ``training``: one Adam step of each neural model of Burgers (lite and paper presets) and of the cylinder
   (lite), before (the formulation and schedule the shipped lite models were trained with) and
-  after (today's), on random windows at each schedule's batch size; the training ratio is the ratio of the
-  estimated wall times, step time x the schedule's step count (validation passes, under 5 %, left out), and
-  the after step's FLOPs (``torch.utils.flop_counter``) give its rate against the matmul peak.
+  after (today's), on random windows at each schedule's batch size; the step ratio is the median of the
+  per-rep ratios (each rep times the two steps next to each other), the training ratio the step ratio times
+  the ratio of the schedules' step counts (validation passes, under 5 % of a run, left out), and the after
+  step's FLOPs (``torch.utils.flop_counter``) give its rate against the matmul peak.
 
     OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --only training   # rerun one section, keep the others
 """
 
 from __future__ import annotations
@@ -342,9 +344,12 @@ TRAINING_CONFIGS = (("burgers", "lite"), ("cylinder", "lite"), ("burgers", "pape
 
 
 def before_formulation(model: Any) -> None:
-    """Switch ``model`` to the training formulation the shipped lite models were trained with: torch's
-    ConvTranspose on the whole batch and, for the Koopman map, float64 ``matrix_exp`` (the map kept out of
-    training mode, the only thing its mode switches). Their optimizer was Adam's plain loop."""
+    """Switch ``model`` to the training formulation the shipped lite models were trained with: the encoder's
+    convolutions as torch's layers run them (not in channels-last layout), torch's ConvTranspose on the whole
+    batch in the decoder and, for the Koopman map, float64 ``matrix_exp`` (the map kept out of training mode,
+    the only thing its mode switches). Their optimizer was Adam's plain loop."""
+    encoder = model.encoder.backbone
+    encoder.forward = lambda x: encoder.fc(encoder.conv(x).flatten(1))
     model.decoder.convolve = model.decoder.reference_convolve
     if model.kind == "koopman":
         model.latent_map.train = lambda mode=True: torch.nn.Module.train(model.latent_map, False)
@@ -404,13 +409,15 @@ def training_section(configs: tuple[tuple[str, str], ...], kinds: list[str], rep
             flops = int(counter.get_total_flops())
             times = interleaved({"before": before, "after": after, "matmul": matmul}, reps, inner)
             peak = gflops(MATMUL_FLOPS, med(times.pop("matmul")))  # beside the steps, under the same load
-            step_ratio = med(times["before"]) / med(times["after"])
+            # Each rep's two steps ran next to each other: the median of the per-rep ratios cancels most of a
+            # neighbour's load, which moves single timings by 2x on a shared machine.
+            step_ratio = med([b / a for b, a in zip(times["before"], times["after"])])
             wall = {"before_s": old.steps * med(times["before"]) / 1e3,
-                    "after_s": new.steps * med(times["after"]) / 1e3}
+                    "after_s": new.steps * med(times["after"]) / 1e3}  # at the medians of the timings
             rows.append({"benchmark": benchmark, "preset": preset, "model": kind, "ms": times, "step_ratio": step_ratio,
                          "schedule_before": old.record(), "schedule_after": new.record(),
                          "steps_before": old.steps, "steps_after": new.steps, "training_s_estimate": wall,
-                         "training_ratio": wall["before_s"] / wall["after_s"], "flops_after": flops,
+                         "training_ratio": step_ratio * old.steps / new.steps, "flops_after": flops,
                          "matmul_gflops": peak, "fraction_of_peak_after": gflops(flops, med(times["after"])) / peak})
     return rows
 
@@ -421,6 +428,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--sizes", nargs="+", type=int, default=[1, 16, 64, 256])
     parser.add_argument("--quick", action="store_true", help="tiny sizes, one rep: checks that every section runs")
+    parser.add_argument("--only", nargs="+", metavar="SECTION", help="run these sections and replace them in "
+                        "--out, keeping its others (their machine and load recorded under machine_SECTION)")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "perf.json"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -444,12 +453,21 @@ def main() -> None:
         + vector_section(model, sizes, "enkf", reps, steps),
         "training": lambda: training_section(configs, kinds, reps, 1 if args.quick else 3),
     }
+    unknown = set(args.only or ()) - set(sections)
+    if unknown:
+        parser.error(f"unknown sections {sorted(unknown)}; choose from {', '.join(sections)}")
     for name, run in sections.items():
+        if args.only and name not in args.only:
+            continue
         tic = time.perf_counter()
         result[name] = run()
         print(f"{name}: {time.perf_counter() - tic:.1f} s", flush=True)
     result["machine"]["loadavg_end"] = list(os.getloadavg())
     out = Path(args.out)
+    if args.only:  # the other sections from the earlier run, this run's machine beside the sections it made
+        earlier = json.loads(out.read_text())
+        this_run = result.pop("machine")
+        result = {**earlier, **result, **{f"machine_{name}": this_run for name in args.only}}
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {out}")
