@@ -346,11 +346,13 @@ TRAINING_CONFIGS = (("burgers", "lite"), ("cylinder", "lite"), ("burgers", "pape
 def before_formulation(model: Any) -> None:
     """Switch ``model`` to the training formulation the shipped lite models were trained with: the encoder's
     convolutions as torch's layers run them (not in channels-last layout), torch's ConvTranspose on the whole
-    batch in the decoder and, for the Koopman map, float64 ``matrix_exp`` (the map kept out of training mode,
-    the only thing its mode switches). Their optimizer was Adam's plain loop."""
-    encoder = model.encoder.backbone
+    batch in the decoder in training mode (out of it, the plain-convolution formulation, as then) and, for the
+    Koopman map, float64 ``matrix_exp`` (the map kept out of training mode, the only thing its mode switches).
+    Their optimizer was Adam's plain loop."""
+    encoder, decoder = model.encoder.backbone, model.decoder
     encoder.forward = lambda x: encoder.fc(encoder.conv(x).flatten(1))
-    model.decoder.convolve = model.decoder.reference_convolve
+    convolve = decoder.convolve
+    decoder.convolve = lambda h: decoder.reference_convolve(h) if decoder.training else convolve(h)
     if model.kind == "koopman":
         model.latent_map.train = lambda mode=True: torch.nn.Module.train(model.latent_map, False)
 
