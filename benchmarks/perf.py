@@ -21,15 +21,19 @@ keeps every rep's median and the ratio. Sections:
 - ``algebra``: the EKF update with a linear model against filterpy's ``KalmanFilter`` at batch 1 and 256;
 - ``torchkf``: one linear predict and Joseph-form update (r = 32, m = 16, float32) at B = 256 and 1024 against
   torch-kf (a batched PyTorch Kalman filter, the dev extra), and the time of each of our safety checks;
-- ``training``: one Adam step of the Koopman model (lite at batch 32, paper at batch 256), FLOPs counted by
-  ``torch.utils.flop_counter`` and the achieved rate against the matmul peak, in training mode (how dks-gym
-  trains) and with the decoder's inference formulation (what switching training over to it would give).
+- ``training``: one Adam step of each neural model of Burgers (lite and paper presets) and of the cylinder
+  (lite), before (the formulation and schedule the shipped lite models were trained with) and
+  after (today's), on random windows at each schedule's batch size; the step ratio is the median of the
+  per-rep ratios (each rep times the two steps next to each other), the training ratio the step ratio times
+  the ratio of the schedules' step counts (validation passes, under 5 % of a run, left out), and the after
+  step's FLOPs (``torch.utils.flop_counter``) give its rate against the matmul peak.
 
     OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections enkf vector --filters enkf   # refresh those entries
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections torchkf   # that section alone, the others kept
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections uncertainty --sizes 16 256   # one section, merged in
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --sections training --reps 7   # the training entry, about 5 min
 
 ``--sections`` (and ``--filters`` for the vector section) run only some of it and refresh only their entries of an
 existing ``--out`` (the vector section's rows by filter and N); the rest of the file is kept, and each refreshed
@@ -65,8 +69,10 @@ from dks_gym.filters.ekf import ekf_forecast, ekf_update
 from dks_gym.filters.enkf import enkf_forecast, enkf_update
 from dks_gym.filters.jacobians import forecast_with_jacobian, observe_with_jacobian, value_and_jacobian
 from dks_gym.filters.measurements import check_measurement
-from dks_gym.models import build_model
+from dks_gym.models import TrainingSchedule, benchmark_shape, build_model, training_schedule
 from dks_gym.models.loss import training_loss
+from dks_gym.models.shipped import find_shipped
+from dks_gym.models.training import adam
 from dks_gym.wrappers import LatentFilter, LatentFilterVectorEnv
 
 
@@ -544,45 +550,88 @@ def torchkf_section(batches: list[int], reps: int, inner: int) -> dict[str, Any]
             "rows": rows,
             "loadavg_start": loadavg_start, "loadavg_end": list(os.getloadavg())}
 
-def training_section(ds: Any, presets: list[str], reps: int, inner: int) -> list[dict[str, Any]]:
-    """One Adam step's achieved FLOP rate against the matmul peak (Koopman, T = 1)."""
+# (benchmark, preset) of the training section, each with the three neural kinds.
+TRAINING_CONFIGS = (("burgers", "lite"), ("cylinder", "lite"), ("burgers", "paper"))
+
+
+def before_formulation(model: Any) -> None:
+    """Switch ``model`` to the training formulation the shipped lite models were trained with: the encoder's
+    convolutions as torch's layers run them (not in channels-last layout), torch's ConvTranspose on the whole
+    batch in the decoder in training mode (out of it, the plain-convolution formulation, as then) and, for the
+    Koopman map, float64 ``matrix_exp`` (the map kept out of training mode, the only thing its mode switches).
+    Their optimizer was Adam's plain loop."""
+    encoder, decoder = model.encoder.backbone, model.decoder
+    encoder.forward = lambda x: encoder.fc(encoder.conv(x).flatten(1))
+    convolve = decoder.convolve
+    decoder.convolve = lambda h: decoder.reference_convolve(h) if decoder.training else convolve(h)
+    if model.kind == "koopman":
+        model.latent_map.train = lambda mode=True: torch.nn.Module.train(model.latent_map, False)
+
+
+def schedules(benchmark: str, preset: str, kind: str) -> tuple[Any, Any]:
+    """The resolved schedule a model was trained with before (a lite model: the shipped one's) and now."""
+    now = training_schedule(benchmark, preset)
+    shipped = find_shipped(benchmark, kind) if preset == "lite" else None
+    if shipped is None:
+        return now, now
+    meta = shipped.metadata
+    n_traj, n_t = meta["data"]["train_shape"][:2]
+    windows = (n_traj - len(meta["validation_trajectories"])) * (n_t - meta["T"])
+    return TrainingSchedule(**meta["schedule"]), now.resolve(windows)
+
+
+def training_step(benchmark: str, preset: str, kind: str, batch: int, before: bool) -> Callable[[], None]:
+    """One Adam step of a fresh model on a fixed batch of random windows, as ``fit_steps`` takes it; mu from 45
+    values, about as many distinct ones per batch as the training split gives."""
+    shape = benchmark_shape(benchmark)
+    gen = torch.Generator().manual_seed(0)
+    cell_type = torch.randint(0, 3, shape.grid, generator=gen).numpy() if shape.has_cell_type else None
+    model = build_model(benchmark, kind, 32, preset, seed=0, cell_type=cell_type)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4) if before else adam(model, 1e-4)
+    if before:
+        before_formulation(model)
+    low, high = shape.param_range
+    x = torch.randn(batch, 2, shape.n_fields, *shape.grid, generator=gen)
+    mu = (low + (high - low) * torch.rand(45, generator=gen, dtype=torch.float64))[torch.randint(45, (batch,),
+                                                                                                  generator=gen)]
+
+    def step() -> None:
+        model.train()
+        loss, _ = training_loss(model, x, mu)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    return step
+
+
+def training_section(configs: tuple[tuple[str, str], ...], kinds: list[str], reps: int,
+                     inner: int) -> list[dict[str, Any]]:
+    """Per model: one Adam step before and after (interleaved), and the run's wall time estimated from them and
+    the schedules' step counts; the after step's FLOP rate against the matmul peak."""
     from torch.utils.flop_counter import FlopCounterMode
 
     rows = []
-    fields = np.asarray(ds.fields("train")[:, :2], dtype=np.float32)  # (n_traj, 2, C, grid): windows of T = 1
-    params = ds.params("train")
-    for preset, batch in (("lite", 32), ("paper", 256)):
-        if preset not in presets:
-            continue
-        model = build_model("burgers", "koopman", 32, preset, dataset=ds, seed=0)
-        optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
-        idx = np.arange(batch) % len(fields)
-        x, mu = torch.from_numpy(fields[idx]), torch.from_numpy(params[idx])
-
-        def step() -> None:
-            loss, _ = training_loss(model, x, mu)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-
-        def training_mode() -> None:
-            model.train()  # torch's ConvTranspose on the whole batch: what dks-gym trains with
-            step()
-
-        def inference_formulation() -> None:
-            model.eval()  # the decoder's plain-convolution blocks (no dropout or batch norm: the same loss)
-            step()
-
-        model.train()
-        with FlopCounterMode(display=False) as counter:
-            step()
-        flops = int(counter.get_total_flops())
-        times = interleaved({"training_mode": training_mode, "inference_formulation": inference_formulation,
-                             "matmul": matmul}, reps, inner)
-        peak = gflops(MATMUL_FLOPS, med(times.pop("matmul")))  # measured beside the steps, under the same load
-        rate = {name: gflops(flops, med(t)) for name, t in times.items()}
-        rows.append({"preset": preset, "batch": batch, "flops": flops, "ms": times, "gflops": rate,
-                     "matmul_gflops": peak, "fraction_of_peak": {name: value / peak for name, value in rate.items()}})
+    for benchmark, preset in configs:
+        for kind in kinds:
+            old, new = schedules(benchmark, preset, kind)
+            before = training_step(benchmark, preset, kind, old.batch_size, before=True)
+            after = training_step(benchmark, preset, kind, new.batch_size, before=False)
+            with FlopCounterMode(display=False) as counter:
+                after()
+            flops = int(counter.get_total_flops())
+            times = interleaved({"before": before, "after": after, "matmul": matmul}, reps, inner)
+            peak = gflops(MATMUL_FLOPS, med(times.pop("matmul")))  # beside the steps, under the same load
+            # Each rep's two steps ran next to each other: the median of the per-rep ratios cancels most of a
+            # neighbour's load, which moves single timings by 2x on a shared machine.
+            step_ratio = med([b / a for b, a in zip(times["before"], times["after"])])
+            wall = {"before_s": old.steps * med(times["before"]) / 1e3,
+                    "after_s": new.steps * med(times["after"]) / 1e3}  # at the medians of the timings
+            rows.append({"benchmark": benchmark, "preset": preset, "model": kind, "ms": times, "step_ratio": step_ratio,
+                         "schedule_before": old.record(), "schedule_after": new.record(),
+                         "steps_before": old.steps, "steps_after": new.steps, "training_s_estimate": wall,
+                         "training_ratio": step_ratio * old.steps / new.steps, "flops_after": flops,
+                         "matmul_gflops": peak, "fraction_of_peak_after": gflops(flops, med(times["after"])) / peak})
     return rows
 
 
@@ -618,9 +667,10 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     reps, inner, batch, sizes, steps = args.reps, 10, 256, args.sizes, 20
-    presets, kf_batches = ["lite", "paper"], [256, 1024]
+    configs, kinds, kf_batches = TRAINING_CONFIGS, ["koopman", "mlp", "xlstm"], [256, 1024]
     if args.quick:
-        reps, inner, batch, sizes, steps, presets, kf_batches = 1, 1, 4, [1, 4], 2, ["lite"], [4, 16]
+        reps, inner, batch, sizes, steps, kf_batches = 1, 1, 4, [1, 4], 2, [4, 16]
+        configs, kinds = TRAINING_CONFIGS[:1], ["koopman"]
 
     @functools.cache
     def data() -> tuple[Any, Any]:
@@ -640,7 +690,7 @@ def main() -> None:
         "vector": lambda: [row for kind in args.filters
                            for row in vector_section(data()[1], sizes, kind, reps, steps)],
         "uncertainty": lambda: uncertainty_section(data()[1], sizes, reps, steps),
-        "training": lambda: training_section(data()[0], presets, reps, 1 if args.quick else 3),
+        "training": lambda: training_section(configs, kinds, reps, 1 if args.quick else 3),
     }
     result: dict[str, Any] = {"machine": machine(args.threads)}
     result["machine"]["matmul_gflops"] = matmul_peak(reps)["gflops"]

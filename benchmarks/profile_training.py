@@ -9,8 +9,9 @@ script wraps around the phases at run time (the package is not changed):
 
 - sampling: ``WindowSampler.sample`` (drawing the windows from the in-memory split);
 - encoder: ``encode`` (normalization, the convolutional encoder and the parameter embedding);
-- latent map: ``forecast`` (the embedding, the generator MLPs and ``matrix_exp``, float64), with
-  ``aten::linalg_matrix_exp`` and its backward reported apart;
+- latent map: ``forecast`` (the embedding, the generator MLPs and the matrix exponential: in training mode
+  ``koopman.taylor_matrix_exp``'s float32 matrix products; before it, float64 ``matrix_exp``, whose
+  ``aten::linalg_matrix_exp`` and backward are reported apart, zero now);
 - decoder: ``decode_normalized``;
 - loss: the rest of ``training_loss`` (targets, stacking, the three means);
 - backward: ``Tensor.backward``; optimizer: Adam's ``zero_grad`` and ``step``;

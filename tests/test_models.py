@@ -15,6 +15,7 @@ from dks_gym.models import (
     build_model,
     count_parameters,
 )
+from dks_gym.models.training import adam
 
 BENCHMARKS = tuple(BENCHMARK_SHAPES)
 
@@ -123,13 +124,50 @@ def test_koopman_operator_equals_expm_of_skew_minus_diagonal_generator():
     assert model.dt == 0.005  # the Burgers latent step of the paper's table
 
 
+@pytest.mark.parametrize("scale", [0.3, 25.0])  # the 1-norms of A dt of the trained lite Burgers and cylinder models
+def test_taylor_matrix_exp_is_as_accurate_as_float32_matrix_exp(scale):
+    """The training formulation of K (float32 scaling and squaring of a Taylor series) against
+    torch.linalg.matrix_exp in float64, value and gradient, measured beside float32's own matrix_exp."""
+    from dks_gym.models.koopman import dissipative_generator, taylor_matrix_exp
+
+    gen = torch.Generator().manual_seed(0)
+    a = dissipative_generator(torch.randn(8, 16, 16, generator=gen, dtype=torch.float64),
+                              torch.rand(8, 16, generator=gen, dtype=torch.float64))
+    a = a * scale / float(a.abs().sum(-2).amax())
+    weights = torch.randn(8, 16, 16, generator=gen, dtype=torch.float64)
+
+    def value_and_grad(fn, dtype):
+        x = a.to(dtype).requires_grad_(True)
+        k = fn(x)
+        (grad,) = torch.autograd.grad((k * weights.to(dtype)).sum(), x)
+        return k.detach().double(), grad.double()
+
+    k_ref, g_ref = value_and_grad(torch.linalg.matrix_exp, torch.float64)
+    k_32, g_32 = value_and_grad(torch.linalg.matrix_exp, torch.float32)
+    k_taylor, g_taylor = value_and_grad(taylor_matrix_exp, torch.float32)
+    assert (k_taylor - k_ref).abs().max() <= 2 * (k_32 - k_ref).abs().max()
+    assert (g_taylor - g_ref).abs().max() <= 2 * (g_32 - g_ref).abs().max()
+    torch.testing.assert_close(taylor_matrix_exp(a), k_ref, rtol=0, atol=1e-13)  # float64: to its round-off
+
+
+def test_training_mode_koopman_operator_equals_the_float64_one():
+    model = _lite("cylinder", "koopman", r=8)  # dt = 0.5: several squarings
+    mu = _mu_grid("cylinder", 5)
+    with torch.no_grad():
+        k_eval = model.koopman_operator(mu)
+        model.train()
+        k_train = model.koopman_operator(mu)
+    assert k_train is not k_eval  # not taken from the cache of the other mode
+    torch.testing.assert_close(k_train, k_eval, rtol=0, atol=2e-6)
+
+
 def test_koopman_cache_follows_parameter_updates():
     model = _lite("burgers", "koopman", r=8)
     mu = _mu_grid("burgers", 4)
     with torch.no_grad():
         k1 = model.koopman_operator(mu)
         assert model.koopman_operator(mu) is k1  # cached
-    opt = torch.optim.SGD(model.latent_map.parameters(), lr=0.1)
+    opt = adam(model, lr=0.1)  # the training runs' optimizer: its update must be seen by the cache
     model.koopman_operator(mu).sum().backward()  # grad enabled: computed afresh, differentiable
     opt.step()
     with torch.no_grad():
@@ -306,19 +344,42 @@ def test_sphere_sensor_local_jacobian_equals_autodiff_through_the_whole_decoder(
 
 
 @pytest.mark.parametrize("benchmark", BENCHMARKS)
-def test_inference_decoder_equals_the_training_one(benchmark):
-    """Out of training mode the decoder runs blocks of rows and stride-1 transposed convolutions as plain ones;
-    the numbers must be the training-mode decoder's (torch's ConvTranspose on the whole batch) to round-off."""
-    model = _lite(benchmark, "mlp")
-    rows = 2 + (1 << 17) // int(np.prod(model.grid))  # more rows than one block holds
-    z = torch.randn(rows, model.r)
+def test_decoder_equals_torch_conv_transpose(benchmark):
+    """The decoder runs blocks of rows and stride-1 transposed convolutions as plain ones (in training, on the CPU,
+    in channels-last layout); its output, in and out of training, and its weight gradients must be those of
+    torch's ConvTranspose on the whole batch to round-off."""
+    decoder = _lite(benchmark, "mlp").decoder
+    rows = 2 + (1 << 17) // int(np.prod(decoder.bottleneck[1:]) * 2 ** (len(decoder.deconv) * decoder.ndim))
+    h = torch.randn(rows, *decoder.bottleneck)  # more rows than one block holds
     with torch.no_grad():
-        fast = model.decoder(z)
-        model.train()
-        reference = model.decoder(z)
-        model.eval()
-    assert fast.shape == reference.shape
-    torch.testing.assert_close(fast, reference, rtol=1e-5, atol=1e-6)
+        reference = decoder.reference_convolve(h)
+        torch.testing.assert_close(decoder.eval().convolve(h), reference, rtol=1e-5, atol=1e-6)
+    decoder.train()
+    outputs, grads = [], []
+    for convolve in (decoder.convolve, decoder.reference_convolve):
+        out = convolve(h[:4])
+        outputs.append(out.detach())
+        grads.append(torch.autograd.grad((out * out).sum(), list(decoder.deconv.parameters())))
+    torch.testing.assert_close(outputs[0], outputs[1], rtol=1e-5, atol=1e-6)
+    for fast, reference in zip(*grads):
+        torch.testing.assert_close(fast, reference, rtol=1e-4, atol=1e-5 * float(reference.abs().max()))
+
+
+@pytest.mark.parametrize("benchmark", BENCHMARKS)
+def test_training_mode_encoder_equals_the_eval_one(benchmark):
+    """In training on the CPU the encoder convolves in channels-last layout (1D maps as height-1 2D maps):
+    output and weight gradients must be those of the eval-mode encoder (the layers as torch runs them)."""
+    encoder = _lite(benchmark, "mlp").encoder.backbone
+    x = torch.randn(3, encoder.conv[0].in_channels, *BENCHMARK_SHAPES[benchmark].grid)
+    outputs, grads = [], []
+    for training in (True, False):
+        encoder.train(training)
+        out = encoder(x)
+        outputs.append(out.detach())
+        grads.append(torch.autograd.grad((out * out).sum(), list(encoder.conv.parameters())))
+    torch.testing.assert_close(outputs[0], outputs[1], rtol=1e-5, atol=1e-6)
+    for fast, reference in zip(*grads):
+        torch.testing.assert_close(fast, reference, rtol=1e-4, atol=1e-5 * float(reference.abs().max()))
 
 
 # xLSTM one-step evaluation -------------------------------------------------------------------------------

@@ -18,14 +18,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from .convolution import CONV, DECONV, DECONV_FN, UPSAMPLE_MODE, channels_last, convolution, stride_one_transposed
 from .embedding import ParameterEmbedding
 from .presets import BackboneSpec, BenchmarkShape
 
-_CONV = {1: nn.Conv1d, 2: nn.Conv2d, 3: nn.Conv3d}
-_DECONV = {1: nn.ConvTranspose1d, 2: nn.ConvTranspose2d, 3: nn.ConvTranspose3d}
-_CONV_FN = {1: nn.functional.conv1d, 2: nn.functional.conv2d, 3: nn.functional.conv3d}
-_DECONV_FN = {1: nn.functional.conv_transpose1d, 2: nn.functional.conv_transpose2d, 3: nn.functional.conv_transpose3d}
-_UPSAMPLE_MODE = {1: "linear", 2: "bilinear", 3: "trilinear"}
 _STRIDE = 2
 
 
@@ -91,7 +87,7 @@ class ConvEncoder(nn.Module):
 
     def __init__(self, shape: BenchmarkShape, spec: BackboneSpec, r: int) -> None:
         super().__init__()
-        conv = _CONV[shape.ndim]
+        conv = CONV[shape.ndim]
         channels = [shape.in_channels, *spec.conv_channels]
         layers: list[nn.Module] = []
         for i, (c_in, c_out) in enumerate(zip(channels[:-1], channels[1:])):
@@ -107,20 +103,19 @@ class ConvEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, C_in, *grid) normalized input -> (B, r); a grid that is not a multiple of 2**stages is padded
-        with zeros (the channel means) at the upper end of each axis."""
+        with zeros (the channel means) at the upper end of each axis. In training on the CPU in channels-last
+        layout (:func:`~dks_gym.models.convolution.convolution`)."""
         if self.padding is not None:
             x = nn.functional.pad(x, self.padding)
-        return self.fc(self.conv(x).flatten(1))
-
-
-def _stride_one_transposed(layer: nn.Module, h: torch.Tensor, bias: bool = True) -> torch.Tensor:
-    """A stride-1 transposed convolution computed as the equivalent plain convolution (flipped, transposed
-    kernel, padding k - 1 - p): the same numbers to float32 round-off, 2-10x faster on CPU, where torch's
-    oneDNN path for ConvTranspose is slow (benchmarks/perf.py). ``bias=False`` leaves the bias out."""
-    k, p = layer.kernel_size[0], layer.padding[0]
-    spatial = tuple(range(2, layer.weight.ndim))
-    weight = layer.weight.flip(spatial).transpose(0, 1)
-    return _CONV_FN[h.ndim - 2](h, weight, layer.bias if bias else None, padding=k - 1 - p)
+        if not channels_last(self, x):
+            return self.fc(self.conv(x).flatten(1))
+        h = x
+        for layer in self.conv:
+            if isinstance(layer, nn.GELU):
+                h = layer(h)
+            else:
+                h = convolution(h, layer.weight, layer.bias, layer.stride[0], layer.padding[0], True)
+        return self.fc(h.flatten(1))
 
 
 class ConvDecoder(nn.Module):
@@ -135,7 +130,7 @@ class ConvDecoder(nn.Module):
         self.crop = (..., *(slice(0, n) for n in shape.grid)) if any(_grid_padding(shape, spec)) else None
         self.bottleneck = (spec.conv_channels[-1], *_bottleneck_grid(shape, spec))
         self.fc = _fc_stack([r, *reversed(spec.fc_widths), math.prod(self.bottleneck)])
-        deconv = _DECONV[shape.ndim]
+        deconv = DECONV[shape.ndim]
         channels = [*reversed(spec.conv_channels), shape.out_channels]
         self.deconv = nn.ModuleList()
         for c_in, c_out in zip(channels[:-1], channels[1:]):
@@ -165,31 +160,37 @@ class ConvDecoder(nn.Module):
         (B, C_out, *(b * 2**stages)) for a window of ``b`` bottleneck cells (every stage is translation-equivariant,
         so a window's output equals the full output wherever its receptive field stays inside the window).
 
-        Out of training mode (filters, evaluation) the rows go through in blocks of about 2^17 output cells and a
-        stride-1 transposed convolution runs as the equivalent plain one: the same numbers to float32 round-off,
-        4-6x faster on CPU for large batches (benchmarks/perf.py). Training keeps torch's ConvTranspose on the
-        whole batch, so that a checkpoint trains to the same weights as before.
+        The rows go through in blocks of about 2^17 output cells and a stride-1 transposed convolution runs as the
+        equivalent plain one (:func:`stride_one_transposed`), in training as out of it: the same numbers as
+        torch's ConvTranspose on the whole batch to float32 round-off, 4-6x faster on CPU for large batches
+        (benchmarks/perf.py). In training on the CPU the maps are in channels-last layout
+        (:func:`~dks_gym.models.convolution.convolution`).
+        :meth:`reference_convolve` is torch's ConvTranspose, kept for the tests.
         """
-        if self.training:
-            return self._convolve(h, fast=False)
         cells = math.prod(h.shape[2:]) * 2 ** (len(self.deconv) * self.ndim)
         rows = max(1, (1 << 17) // cells)
         if h.shape[0] <= rows:
             return self._convolve(h, fast=True)
         return torch.cat([self._convolve(block, fast=True) for block in h.split(rows)])
 
-    def _convolve(self, h: torch.Tensor, fast: bool) -> torch.Tensor:
-        for i in range(len(self.deconv)):
-            h = self._stage(i, h, fast)
-        return h
+    def reference_convolve(self, h: torch.Tensor) -> torch.Tensor:
+        """:meth:`convolve` with torch's ConvTranspose layers on the whole batch: the reference it is tested
+        against."""
+        return self._convolve(h, fast=False)
 
-    def _stage(self, i: int, h: torch.Tensor, fast: bool) -> torch.Tensor:
+    def _convolve(self, h: torch.Tensor, fast: bool) -> torch.Tensor:
+        last = fast and channels_last(self, h)
+        for i in range(len(self.deconv)):
+            h = self._stage(i, h, fast, last)
+        return h.contiguous() if last else h
+
+    def _stage(self, i: int, h: torch.Tensor, fast: bool, last: bool = False) -> torch.Tensor:
         """Stage ``i`` of the convolutional part: x2 in every axis (upsampling and a size-preserving transposed
         convolution, or a stride-2 one), then GELU unless it is the last."""
         layer = self.deconv[i]
         if self.mode == "upsample":
-            h = nn.functional.interpolate(h, scale_factor=2, mode=_UPSAMPLE_MODE[self.ndim])
-            h = _stride_one_transposed(layer, h) if fast else layer(h)
+            h = nn.functional.interpolate(h, scale_factor=2, mode=UPSAMPLE_MODE[self.ndim])
+            h = stride_one_transposed(layer, h, channels_last=last) if fast else layer(h)
         else:
             h = layer(h)
         return self.act(h) if i < len(self.deconv) - 1 else h
@@ -207,10 +208,10 @@ class ConvDecoder(nn.Module):
         weight = self.deconv[i].weight
         basis = torch.eye(n_in, dtype=weight.dtype, device=weight.device).view(n_in, layer.in_channels, *widths)
         if self.mode == "upsample":
-            basis = nn.functional.interpolate(basis, scale_factor=2, mode=_UPSAMPLE_MODE[self.ndim])
-            matrix = _stride_one_transposed(layer, basis, bias=False)
+            basis = nn.functional.interpolate(basis, scale_factor=2, mode=UPSAMPLE_MODE[self.ndim])
+            matrix = stride_one_transposed(layer, basis, bias=False)
         else:
-            matrix = _DECONV_FN[self.ndim](basis, layer.weight, None, stride=layer.stride, padding=layer.padding,
+            matrix = DECONV_FN[self.ndim](basis, layer.weight, None, stride=layer.stride, padding=layer.padding,
                                            output_padding=layer.output_padding)
         return matrix.reshape(n_in, n_out), layer.bias.repeat_interleave(n_out // layer.out_channels)
 
@@ -220,7 +221,7 @@ class ConvDecoder(nn.Module):
         stays a convolution."""
         stage = self._stage_matrix(i, tuple(h.shape[2:]))
         if stage is None:
-            return self._stage(i, h, fast=not self.training)
+            return self._stage(i, h, fast=True)
         matrix, bias = stage
         out = (self.deconv[i].out_channels, *(2 * w for w in h.shape[2:]))
         h = torch.addmm(bias, h.reshape(len(h), -1), matrix).view(len(h), *out)

@@ -35,12 +35,12 @@ import torch
 from torch import nn
 
 from .backbones import ConvDecoder, gelu_slope
+from .convolution import UPSAMPLE_MODE
 
 #: Numbers in the largest tangent field of one chunk (cells x channels x elements x columns): 4 MB in float32.
 CHUNK_NUMBERS = 2**20
 #: The most numbers the per-cell blocks of all stages may hold (64 MB in float32).
 KERNEL_NUMBERS = 2**24
-_UPSAMPLE_MODE = {1: "linear", 2: "bilinear", 3: "trilinear"}
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -259,7 +259,7 @@ def _stage_linear(decoder: ConvDecoder, i: int, x: torch.Tensor) -> torch.Tensor
     layer = decoder.deconv[i]
     transposed = getattr(nn.functional, f"conv_transpose{decoder.ndim}d")
     if decoder.mode == "upsample":
-        x = nn.functional.interpolate(x, scale_factor=2, mode=_UPSAMPLE_MODE[decoder.ndim])
+        x = nn.functional.interpolate(x, scale_factor=2, mode=UPSAMPLE_MODE[decoder.ndim])
         return transposed(x, layer.weight, None, 1, layer.padding)
     return transposed(x, layer.weight, None, layer.stride, layer.padding, layer.output_padding)
 

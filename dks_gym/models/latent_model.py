@@ -446,7 +446,8 @@ class KoopmanModel(NeuralLatentModel):
             return self._compute_operator(mu)
         # In-place updates (optimizer steps, load_state_dict) bump the parameter versions.
         versions = tuple(p._version for p in self._operator_parameters())
-        key = (str(mu.device), str(mu.dtype), mu.detach().cpu().numpy().tobytes(), versions)
+        # The training mode is part of the key: the latent map computes K in another formulation there.
+        key = (str(mu.device), str(mu.dtype), mu.detach().cpu().numpy().tobytes(), versions, self.training)
         if key in self._operator_cache:
             self._operator_cache.move_to_end(key)
             return self._operator_cache[key]
