@@ -108,11 +108,14 @@ def data() -> None:
 @click.option("--overwrite", is_flag=True, help="Regenerate even if the file exists.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Parallel OpenFOAM runs for cylinder and dambreak (default 1).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Run the OpenFOAM runs of cylinder and dambreak on the Dask cluster of this scheduler (e.g. "
+                   "tcp://host:8786; pip install 'dks-gym[cluster]'); its workers must see the output's folder.")
 @click.option("--device", default=None,
               help="Torch device of the burgers and sphere solvers: cpu (default), cuda or cuda:N.")
 @click.option("--force", is_flag=True, help="Run a preset that needs a GPU on the CPU anyway (days for the sphere).")
 def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, overwrite: bool,
-                  workers: int | None, device: str | None, force: bool) -> None:
+                  workers: int | None, scheduler: str | None, device: str | None, force: bool) -> None:
     """Generate BENCHMARK's dataset (burgers, cylinder, dambreak, sphere).
 
     Prints what the run will cost before it starts. The CFD benchmarks cache their OpenFOAM runs in
@@ -121,15 +124,19 @@ def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, over
     """
     from .dataset import Dataset, generate_dataset
     from .home import DataHomeError, dataset_path
+    from .parallel import open_executor
     from .solvers.openfoam import OpenFOAMError
 
     benchmark = benchmark.lower()
     options = {}
     openfoam = benchmark in ("cylinder", "dambreak")
-    if workers is not None:
-        if not openfoam:
-            raise click.UsageError(f"--workers is for the OpenFOAM benchmarks (cylinder, dambreak); "
+    for name, value in (("--workers", workers), ("--scheduler", scheduler)):
+        if value is not None and not openfoam:
+            raise click.UsageError(f"{name} is for the OpenFOAM benchmarks (cylinder, dambreak); "
                                    f"{benchmark} is one batched torch solve (see --device)")
+    if workers is not None and scheduler is not None:
+        raise click.UsageError("give --scheduler (a Dask cluster) or --workers (local processes), not both")
+    if workers is not None:
         options["workers"] = workers
     if device is not None:
         if openfoam:
@@ -149,7 +156,10 @@ def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, over
         click.echo(f"generating {benchmark} {preset}: expect {cost.describe()}", err=True)
     start = time.perf_counter()
     try:
-        path = generate_dataset(benchmark, preset, path=out, seed=seed, overwrite=overwrite, **options)
+        with open_executor(scheduler) as executor:
+            if executor is not None:
+                options["executor"] = executor
+            path = generate_dataset(benchmark, preset, path=out, seed=seed, overwrite=overwrite, **options)
     except (GeneratorUnavailable, DataHomeError, OpenFOAMError, ValueError) as exc:
         raise click.ClickException(str(exc)) from exc
     with Dataset(path) as ds:

@@ -405,7 +405,50 @@ def test_cli_device_and_workers_options_go_to_the_right_generators(tmp_path: Pat
     assert result.exit_code == 2 and "--device is for the torch solvers" in result.output
     result = runner.invoke(main, ["data", "generate", "sphere", "--workers", "2", "--out", str(tmp_path / "s.h5")])
     assert result.exit_code == 2 and "--workers is for the OpenFOAM benchmarks" in result.output
+    result = runner.invoke(main, ["data", "generate", "burgers", "--scheduler", "tcp://127.0.0.1:1", "--out",
+                                  str(tmp_path / "s.h5")])
+    assert result.exit_code == 2 and "--scheduler is for the OpenFOAM benchmarks" in result.output
+    result = runner.invoke(main, ["data", "generate", "cylinder", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1",
+                                  "--out", str(tmp_path / "c.h5")])
+    assert result.exit_code == 2 and "not both" in result.output
     assert not (tmp_path / "c.h5").exists() and not (tmp_path / "s.h5").exists()
+
+
+def test_cli_scheduler_hands_the_clusters_executor_to_the_openfoam_generator(tmp_path: Path, monkeypatch) -> None:
+    """`data generate cylinder --scheduler ADDRESS` gives the generator the executor of a client of that scheduler
+    (the generator's run on a real LocalCluster: tests/test_openfoam.py), and closes the client after."""
+    import concurrent.futures as cf
+    import contextlib
+
+    import dks_gym.dataset
+    import dks_gym.parallel
+
+    seen: dict = {}
+
+    class Client:  # what open_executor asks of distributed.Client
+        def get_executor(self, pure: bool) -> cf.Executor:
+            seen["executor"] = cf.ThreadPoolExecutor(1)
+            return seen["executor"]
+
+    @contextlib.contextmanager
+    def client(address: str):
+        seen["address"] = address
+        try:
+            yield Client()
+        finally:
+            seen["closed"] = True
+
+    def generate(benchmark: str, preset: str, **options):
+        seen["options"] = options
+        raise ValueError("stop here: the options are what this test checks")
+
+    monkeypatch.setattr(dks_gym.parallel, "_dask_client", client)
+    monkeypatch.setattr(dks_gym.dataset, "generate_dataset", generate)
+    result = CliRunner().invoke(main, ["data", "generate", "cylinder", "--scheduler", "tcp://10.0.0.1:8786", "--out",
+                                       str(tmp_path / "c.h5")])
+    assert result.exit_code == 1 and "stop here" in result.output
+    assert seen["address"] == "tcp://10.0.0.1:8786" and seen["closed"]
+    assert seen["options"]["executor"] is seen["executor"] and "workers" not in seen["options"]
 
 
 def test_cli_states_the_cost_first_and_refuses_a_gpu_preset_on_the_cpu(tmp_path: Path) -> None:
