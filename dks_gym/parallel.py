@@ -69,11 +69,16 @@ def map_tasks(fn: Callable[..., R], tasks: Iterable[tuple], executor: cf.Executo
     """
     if executor is None:
         return (fn(*args) for args in tasks)
-    if not isinstance(executor, cf.Executor):
-        raise TypeError(f"executor must be a concurrent.futures.Executor, got {type(executor).__name__}; for Dask "
-                        "pass client.get_executor()")
+    check_executor(executor)
     context = (str(data_home()), thread_override())
     return _in_order([executor.submit(_in_context, _packed(fn, (context, fn, args))) for args in tasks])
+
+
+def check_executor(executor: Any) -> None:
+    """Raise TypeError unless ``executor`` is a :class:`concurrent.futures.Executor` (or None)."""
+    if executor is not None and not isinstance(executor, cf.Executor):
+        raise TypeError(f"executor must be a concurrent.futures.Executor, got {type(executor).__name__}; for Dask "
+                        "pass client.get_executor()")
 
 
 def _packed(fn: Callable, payload: Any, what: str = "a task") -> bytes:
@@ -171,4 +176,4 @@ def _dask_client(address: str) -> Iterator[Any]:
         client.close()
 
 
-__all__ = ["executor_options", "map_tasks", "open_executor"]
+__all__ = ["check_executor", "executor_options", "map_tasks", "open_executor"]

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ...atomic import atomic_path
+from ...parallel import check_executor
 from .resampler import Resampler
 from .tools import OpenFOAMError
 
@@ -108,11 +109,7 @@ def run_all(
     """
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    if executor is not None and not isinstance(executor, cf.Executor):
-        raise TypeError(
-            f"executor must be a concurrent.futures.Executor, got {type(executor).__name__}; "
-            "for dask use client.get_executor()"
-        )
+    check_executor(executor)
     workdir = Path(workdir)
     paths = {(r.split, r.index): cache_path(workdir, name, settings, r) for r in runs}
     todo = [r for r in runs if not paths[(r.split, r.index)].exists()]
@@ -132,6 +129,10 @@ def run_all(
                     failures.append(f"{r.split}[{r.index}]: {exc}")
                 bar.update(1)
         else:
+            # Unlike map_tasks (results in order, the first failure stops the rest), every run is attempted and
+            # the bar moves as runs finish: each worker caches its own result, so the order does not matter. The
+            # own pool forks (open_executor's spawns), so that generate_dataset(workers=N) also runs from a
+            # script without a __main__ guard.
             own = executor is None
             pool = cf.ProcessPoolExecutor(max_workers=int(workers)) if own else executor
             try:
