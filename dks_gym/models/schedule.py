@@ -105,9 +105,9 @@ class TrainingSchedule:
 # 1000 steps), 60 epochs of the training windows capped at 8000 steps; neither fewer steps (6000), a higher lr
 # (1.5e-3 to 3e-3) nor another batch size (16, 64, 128) reached the same best validation loss within 5 %. The
 # cylinder: lr 5e-3 for 1500 steps at batch 16 reaches the best validation loss that lr 1e-3 reached in 3000
-# (docs/training.md; 1e-2 collapses to the mean field, 1000 steps fall short); the dambreak, not measured so
-# far, keeps lr 1e-3 and 3000 steps. The sphere's lite schedule is sized by time (0.9 s per step at batch 4)
-# and has no validation split.
+# (docs/training.md; 1e-2 collapses to the mean field, 1000 steps fall short); the dambreak keeps lr 1e-3 and
+# 3000 steps (the cylinder's shorter schedule was not tried on it). The sphere's lite schedule is sized by time
+# (0.9 s per step at batch 4) and has no validation split.
 TRAINING_SCHEDULES: dict[str, dict[str, TrainingSchedule]] = {
     "paper": {
         "burgers": TrainingSchedule(1000, 256, LEARNING_RATE),
