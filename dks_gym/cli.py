@@ -182,7 +182,7 @@ def data_kuramoto_sivashinsky(folder: Path, n_train: int, n_test: int, per_value
                               length: float | None, seed: int) -> None:
     """Solve the 1D Kuramoto-Sivashinsky equation and write the trajectories in The Well's layout in FOLDER.
 
-    A flow none of the four (docs/envs.md, "End to end"); import with `dks-gym data import the-well FOLDER`."""
+    A flow none of the four (docs/envs.md, "End to end"); `dks-gym data import the-well FOLDER --out FILE`."""
     from .dataset.kuramoto_sivashinsky import generate_well_folder
 
     try:
