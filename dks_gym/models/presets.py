@@ -162,7 +162,7 @@ MIN_STAGES = 3
 _WIDTH_PER_CHANNEL = {"lite": 2, "paper": 8}
 #: lite: at least the lite 2D table's 8. Burgers' lite 2-4-8 suits its smooth field; on the KS example (L = 22,
 #: 64 points) 2-4-8 left the Koopman and MLP models' reconstructions at 12 % and 19 % of the field's variance,
-#: 8-16-32 at 1.3 % and 2.7 % (docs/results/kuramoto-sivashinsky).
+#: 8-16-32 at 0.5 % and 2.7 % (docs/results/kuramoto-sivashinsky).
 _MIN_WIDTH = {"lite": 8, "paper": 8}
 _MAX_WIDTH = {"lite": 64, "paper": 512}
 #: Per preset and number of axes: the table whose kernel, padding, activations, decoder and dense widths the rule
