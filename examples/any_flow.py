@@ -2,7 +2,7 @@
 in The Well's layout, import it, train the four lite latent models, rank sensor placements with each model's EKF
 in the loop. The commands doing the same, and their numbers: docs/results/kuramoto-sivashinsky/README.md.
 
-    python examples/any_flow.py OUT            # 44 trajectories, the lite schedules: about 15 minutes on a CPU core
+    python examples/any_flow.py OUT            # 44 trajectories, the lite schedules: about 10 minutes on a CPU core
     python examples/any_flow.py OUT --small    # 4 trajectories, 2 training steps, r = 4: seconds (the test runs it)
 """
 import sys
