@@ -175,19 +175,19 @@ def data_generate(benchmark: str, preset: str, seed: int, out: Path | None, over
 @click.option("--per-value", type=click.IntRange(min=1), default=1, show_default=True,
               help="Trajectories (random initial conditions) per viscosity (pDMD needs 1: distinct values).")
 @click.option("--frames", type=click.IntRange(min=2), default=100, show_default=True, help="Frames, 0.5 apart.")
-@click.option("--points", type=click.IntRange(min=4), default=128, show_default=True, help="Grid points.")
+@click.option("--points", type=click.IntRange(min=4), default=64, show_default=True, help="Grid points on [0, L).")
+@click.option("--length", type=click.FloatRange(min=0, min_open=True), help="Domain length L [default: 22].")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial conditions.")
 def data_kuramoto_sivashinsky(folder: Path, n_train: int, n_test: int, per_value: int, frames: int, points: int,
-                              seed: int) -> None:
+                              length: float | None, seed: int) -> None:
     """Solve the 1D Kuramoto-Sivashinsky equation and write the trajectories in The Well's layout in FOLDER.
 
-    A flow none of the four benchmarks is (docs/envs.md, "End to end: a flow of your own"); bring it in with
-    `dks-gym data import the-well FOLDER --out FILE`."""
+    A flow none of the four (docs/envs.md, "End to end"); `dks-gym data import the-well FOLDER --out FILE`."""
     from .dataset.kuramoto_sivashinsky import generate_well_folder
 
     try:
         files = generate_well_folder(folder, n_train=n_train, n_test=n_test, per_value=per_value, n_t=frames,
-                                     n_x=points, seed=seed)
+                                     n_x=points, seed=seed, **({} if length is None else {"L": length}))
     except (ValueError, FileExistsError, FloatingPointError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(", ".join(f"{len(v)} {k} files" for k, v in files.items()) + f" -> {folder}")

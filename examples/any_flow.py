@@ -2,7 +2,7 @@
 in The Well's layout, import it, train the four lite latent models, rank sensor placements with each model's EKF
 in the loop. The commands doing the same, and their numbers: docs/results/kuramoto-sivashinsky/README.md.
 
-    python examples/any_flow.py OUT            # 44 trajectories, the lite schedules: about 15 minutes on a CPU core
+    python examples/any_flow.py OUT            # 44 trajectories, the lite schedules: about 10 minutes on a CPU core
     python examples/any_flow.py OUT --small    # 4 trajectories, 2 training steps, r = 4: seconds (the test runs it)
 """
 import sys
@@ -22,7 +22,7 @@ from dks_gym_agents.registry import DEFAULT_POLICIES
 def main(out: Path, small: bool = False) -> dict[str, dict]:
     if small:  # 4 trajectories of 20 frames on 64 points; the middle two viscosities are the test split
         write_well_folder(small_dataset(), [1, 2], out / "well")
-    else:  # 32 training and 12 test viscosities, one trajectory each, 100 frames on 128 points
+    else:  # 32 training and 12 test viscosities, one trajectory each, 100 frames on 64 points of L = 22
         generate_well_folder(out / "well")
     ds = Dataset(import_the_well(out / "well", out / "ks.h5"))  # a custom benchmark named "kuramoto_sivashinsky"
     r, steps, m, policies = (4, 2, 4, ["paper", "qr"]) if small else (32, None, 16, DEFAULT_POLICIES)

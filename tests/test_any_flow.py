@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from dks_gym.benchmarks import CustomBenchmark
 from dks_gym.cli import main as cli
 from dks_gym.dataset import Dataset, import_the_well
-from dks_gym.dataset.kuramoto_sivashinsky import split_values, write_well_folder
+from dks_gym.dataset.kuramoto_sivashinsky import DATA_LENGTH, split_values, write_well_folder
 from dks_gym.names import MODEL_KINDS
 from dks_gym.solvers.kuramoto_sivashinsky import NU_RANGE, small_dataset
 
@@ -46,6 +46,25 @@ def test_the_well_folder_imports_as_the_solver_wrote_it(tmp_path: Path) -> None:
     # without the property has a mean near max|u| / sqrt(64).
     u = np.stack([ds.trajectory("train", i)[:, 0] for i in range(2)]).astype(np.float64)
     assert np.abs(u.mean(axis=-1)).max() < 1e-5 * np.abs(u).max()
+
+
+def test_the_command_writes_the_l22_data_on_64_points_by_default(tmp_path: Path) -> None:
+    import h5py
+
+    def written(*options: str) -> tuple[np.ndarray, np.ndarray]:
+        out = tmp_path / "-".join(("well",) + options)
+        result = CliRunner().invoke(cli, ["data", "kuramoto-sivashinsky", str(out), "--n-train", "2", "--n-test", "1",
+                                          "--frames", "2", *options])
+        assert result.exit_code == 0, result.output
+        with h5py.File(sorted((out / "data" / "train").iterdir())[0]) as f:
+            return f["dimensions/x"][:], f["t0_fields/u"][:]
+
+    # The default domain (DATA_LENGTH = 22, 64 points) and the option: x_j = L j / n on [0, L).
+    x, u = written()
+    np.testing.assert_allclose(x, DATA_LENGTH * np.arange(64) / 64)
+    assert DATA_LENGTH == 22.0 and u.shape[-1] == 64
+    x, _ = written("--length", "11", "--points", "32")
+    np.testing.assert_allclose(x, 11 * np.arange(32) / 32)
 
 
 def test_the_example_runs_end_to_end_and_the_command_ranks_its_file(tmp_path: Path, monkeypatch) -> None:

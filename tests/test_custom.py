@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from pathlib import Path
 
@@ -118,7 +120,9 @@ def test_sizing_rule_gives_the_paper_stage_counts_and_tables_where_they_coincide
             assert backbone_spec(name, preset) is BACKBONES[preset][name]
     burgers, cylinder = benchmark_shape("burgers"), benchmark_shape("cylinder")
     assert sized_backbone(burgers, "paper") == BACKBONES["paper"]["burgers"]  # 8-16-32, k3, FC 512-256
-    assert sized_backbone(burgers, "lite") == BACKBONES["lite"]["burgers"]
+    # lite: at least 8 channels first, so Burgers' shape gets 8-16-32, wider than its lite table's 2-4-8
+    lite_8 = dataclasses.replace(BACKBONES["lite"]["burgers"], conv_channels=(8, 16, 32))
+    assert sized_backbone(burgers, "lite") == lite_8
     assert sized_backbone(cylinder, "lite") == BACKBONES["lite"]["cylinder"]  # 8-16-32, k5, FC 128-64
     assert stride_stages((2048,)) == 4 and stride_stages((20, 36)) == 3 and stride_stages((96, 96)) == 4
 
@@ -131,7 +135,7 @@ def test_padded_grid_decodes_to_the_grid_and_its_sensor_jacobian_is_the_derivati
     bench = CustomBenchmark(name="line", grid=(100,), channels=("u",), observed_channel="u", scored_channels=("u",),
                             param_name="a", param_range=(1.0, 2.0), dt=0.1, n_frames=4, n_train=2, n_test=1)
     model = build_model(bench, "mlp", r=4, preset="lite", seed=0).double()
-    assert model.decoder.bottleneck == (8, 13) and model.decoder.window() == (5,)
+    assert model.decoder.bottleneck == (32, 13) and model.decoder.window() == (5,)  # lite 8-16-32
     mu = torch.tensor([1.0, 1.5, 2.0], dtype=torch.float64)
     z = torch.randn(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     assert model.decode(z, mu).shape == (3, 1, 100) and model.encode(model.decode(z, mu), mu).shape == (3, 4)

@@ -1,8 +1,16 @@
 """Kuramoto-Sivashinsky trajectories as a dataset folder in The Well's layout: a flow none of the four
 benchmarks is, generated here and brought in the way any flow of The Well is (``dks-gym data import the-well``).
 
-The trajectories come from :mod:`dks_gym.solvers.kuramoto_sivashinsky` (L = 60, nu over [0.5, 1], 128 stored
-points; its docstring says why). As in The Well, the files group the trajectories by parameter value: each
+The trajectories come from :mod:`dks_gym.solvers.kuramoto_sivashinsky` on a domain of :data:`DATA_LENGTH` = 22
+(nu over the solver's :data:`~dks_gym.solvers.kuramoto_sivashinsky.NU_RANGE` [0.5, 1], so L_eff = L / sqrt(nu)
+from 22 to 31.1), stored on 64 points (solved on 128). L = 22 is the classic low-dimensional chaotic KS (an
+inertial manifold of about 8 dimensions; Cvitanovic, Davidchack & Siminos 2010; the latent models of Linot &
+Graham 2020): its fields are held to 0.05 % of their variance by 16 POD modes. Over the nu range the
+solver's Lyapunov scan (docs/validation.md#kuramoto-sivashinsky) has chaotic runs at L_eff = 22, 26 and 30
+and weakly chaotic, periodic or travelling-wave ones between, so the benchmark mixes both. The solver's
+own default, L = 60 (robust chaos, 128 points), is not used here: from 32 trajectories of 100 frames the
+lite models could not learn it (every EKF estimate worse than the field's variance;
+docs/results/kuramoto-sivashinsky/README.md). As in The Well, the files group the trajectories by parameter value: each
 viscosity nu gets ``per_value`` random initial conditions (default one: pDMD needs distinct parameter values, as
 the four benchmarks have), and the test viscosities lie between training ones (unseen values inside the training
 range, as the four benchmarks' test splits). The boundary is periodic in x.
@@ -20,6 +28,8 @@ from .the_well import WellFlow, write_the_well
 
 #: The files' ``dataset_name``: the benchmark name the import gives the flow.
 DATASET_NAME = "kuramoto_sivashinsky"
+#: Domain length of the generated data (the module docstring says why 22).
+DATA_LENGTH = 22.0
 
 
 def split_values(n_train: int, n_test: int) -> tuple[np.ndarray, np.ndarray]:
@@ -54,14 +64,16 @@ def write_well_folder(data: Trajectories, test: Sequence[int], out_dir: str | Pa
 
 
 def generate_well_folder(out_dir: str | Path, *, n_train: int = 32, n_test: int = 12, per_value: int = 1,
-                         n_t: int = 100, n_x: int = 128, seed: int = 0) -> dict[str, list[Path]]:
+                         n_t: int = 100, n_x: int = 64, L: float = DATA_LENGTH,
+                         seed: int = 0) -> dict[str, list[Path]]:
     """Solve ``per_value`` KS trajectories at each of ``n_train`` training and ``n_test`` test viscosities
-    (:func:`split_values`; ``n_t`` frames 0.5 apart on ``n_x`` points, the initial conditions from ``seed``) and
-    write them in The Well's layout under ``out_dir`` (:func:`write_well_folder`); return the files per split."""
+    (:func:`split_values`; ``n_t`` frames 0.5 apart on ``n_x`` points of the domain [0, ``L``), the initial
+    conditions from ``seed``) and write them in The Well's layout under ``out_dir`` (:func:`write_well_folder`);
+    return the files per split."""
     train, test = split_values(n_train, n_test)
     nu = np.repeat(np.concatenate([train, test]), per_value)
-    data = trajectories(n_traj=len(nu), n_t=n_t, n_x=n_x, nu=nu, seed=seed)
+    data = trajectories(n_traj=len(nu), n_t=n_t, n_x=n_x, nu=nu, L=L, seed=seed)
     return write_well_folder(data, np.arange(len(train) * per_value, len(nu)), out_dir)
 
 
-__all__ = ["DATASET_NAME", "generate_well_folder", "split_values", "write_well_folder"]
+__all__ = ["DATASET_NAME", "DATA_LENGTH", "generate_well_folder", "split_values", "write_well_folder"]
