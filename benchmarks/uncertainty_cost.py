@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -33,10 +34,14 @@ import torch
 import dks_gym  # noqa: F401  (registers the env ids)
 from dks_gym.assimilation import AssimilationConfig, FilterConfig, jacobian_variance, run_assimilation
 from dks_gym.assimilation.uncertainty import _jvp_variance
+from dks_gym.atomic import atomic_write_text
 from dks_gym.filters.covariance import psd_sqrt
 from dks_gym.dataset import generate_dataset, load_dataset
 from dks_gym.models import build_model
 from dks_gym.wrappers import LatentFilter, LatentFilterVectorEnv
+
+sys.path.insert(0, str(Path(__file__).parent))
+from perf import median_ms  # noqa: E402  (the one timing helper of the benchmarks)
 
 
 def _episode_step_ms(env, n_envs: int) -> float:
@@ -55,16 +60,6 @@ def _episode_step_ms(env, n_envs: int) -> float:
     return 1e3 * float(np.median(times[:-1]))  # the last step of a vector env also resets the batch
 
 
-def _median_ms(fn, inner: int = 3) -> float:
-    fn()
-    times = []
-    for _ in range(inner):
-        tic = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - tic)
-    return 1e3 * float(np.median(times))
-
-
 def variance_row(model, kind: str, batch: int, reps: int) -> dict:
     """``jacobian_variance`` at ``batch`` elements: the model's own rule, the JVPs, a decode, the floor product."""
     g = torch.Generator().manual_seed(0)
@@ -79,7 +74,7 @@ def variance_row(model, kind: str, batch: int, reps: int) -> dict:
     with torch.no_grad():
         for _ in range(reps):
             for name, fn in fns.items():
-                times[name].append(_median_ms(fn, 1 if name == "jvp" else 3))
+                times[name].append(median_ms(fn, 1 if name == "jvp" else 3))
     med = {name: float(np.median(t)) for name, t in times.items()}
     return {"model": kind, "batch": batch, "ms": times,
             "own_rule_over_floor": med["own_rule"] / med["floor_matmul"],
@@ -147,7 +142,7 @@ def main() -> None:
     doc = {"benchmark": "burgers", "preset": "small", "r": 32, "model_preset": "lite", "n_sensors": 16,
            "torch_threads": 1, "torch": torch.__version__, "machine": platform.processor() or platform.machine(),
            "reps": args.reps, "rows": rows, "variance": variance}
-    out.write_text(json.dumps(doc, indent=1) + "\n")
+    atomic_write_text(out, json.dumps(doc, indent=1) + "\n")
     print(f"wrote {out}")
 
 
