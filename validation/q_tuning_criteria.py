@@ -21,9 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dks_gym.assimilation import AssimilationConfig
-from dks_gym.assimilation.episodes import run_assimilation
-from dks_gym.assimilation.tuning import _trajectories
+from dks_gym.assimilation.tuning import held_out_run, held_out_trajectories
 from dks_gym.atomic import atomic_write_text
 from dks_gym.dataset import load_dataset
 from dks_gym.models import load_model
@@ -34,13 +32,11 @@ SCALES = (2.0**-4, 2.0**-2, 1.0, 4.0, 16.0, 64.0, 256.0)
 
 
 def scan(model: object, dataset: object, scales: list[float]) -> list[dict[str, float]]:
-    """Coverage, mean CRPS and MSE of the EKF on the model's held-out trajectories at each scale of its Q."""
-    trajectories = _trajectories(model)
+    """Coverage, mean CRPS and MSE of the tuning's EKF run (:func:`held_out_run`) at each scale of the model's Q."""
+    trajectories = held_out_trajectories(model)
     rows = []
     for scale in scales:
-        config = AssimilationConfig(noise_level=0.2, n_sensors=16, split="train")
-        result = run_assimilation(model, dataset, config.replace(Q=scale * model.calibration["Q"], P0="calibrated"),
-                                  trajectories=trajectories)
+        result = held_out_run(model, dataset, scale, trajectories)
         rows.append({"scale": scale, "coverage": float(np.mean(result.step_coverage[:, 1:])),
                      "crps": float(np.mean(result.step_crps[:, 1:])), "mse": float(np.mean(result.step_mse[:, 1:]))})
     return rows

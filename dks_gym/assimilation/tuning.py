@@ -33,7 +33,7 @@ from ..models import FilterableModel
 from ..models.checkpoint import update_calibration
 from ..models.shipped import is_shipped
 from .config import AssimilationConfig
-from .episodes import run_assimilation
+from .episodes import AssimilationResult, run_assimilation
 
 
 #: The coverage the tuned filter should reach over the held-out frames.
@@ -47,7 +47,9 @@ BISECTIONS = 6
 MAX_TRAJECTORIES = 5
 
 
-def _trajectories(model: FilterableModel) -> list[int] | None:
+def held_out_trajectories(model: FilterableModel) -> list[int] | None:
+    """The training trajectories the tuning filters: the model's calibration ones (held out from its training),
+    at most :data:`MAX_TRAJECTORIES` evenly spread; None when its calibration names none."""
     held_out = (getattr(model, "calibration", None) or {}).get("trajectories")
     if held_out is None:
         return None
@@ -57,12 +59,18 @@ def _trajectories(model: FilterableModel) -> list[int] | None:
     return index
 
 
-def held_out_coverage(model: FilterableModel, dataset: Dataset, scale: float, trajectories: list[int], *,
-                      noise_level: float = 0.2, n_sensors: int = 16) -> float:
-    """The EKF's 95 % coverage over frames 1..n_t-1 of ``trajectories`` (train split) with ``scale * Q``."""
+def held_out_run(model: FilterableModel, dataset: Dataset, scale: float, trajectories: list[int], *,
+                 noise_level: float = 0.2, n_sensors: int = 16) -> AssimilationResult:
+    """The tuning's EKF run: ``trajectories`` (train split) with ``scale`` times the calibrated Q and P0."""
     config = AssimilationConfig(noise_level=noise_level, n_sensors=n_sensors, split="train")
     config = config.replace(Q=scale * model.calibration["Q"], P0="calibrated")
-    result = run_assimilation(model, dataset, config, trajectories=trajectories)
+    return run_assimilation(model, dataset, config, trajectories=trajectories)
+
+
+def held_out_coverage(model: FilterableModel, dataset: Dataset, scale: float, trajectories: list[int], *,
+                      noise_level: float = 0.2, n_sensors: int = 16) -> float:
+    """The EKF's 95 % coverage over frames 1..n_t-1 of :func:`held_out_run`."""
+    result = held_out_run(model, dataset, scale, trajectories, noise_level=noise_level, n_sensors=n_sensors)
     return float(np.mean(result.step_coverage[:, 1:]))
 
 
@@ -78,7 +86,7 @@ def tune_process_noise(model: FilterableModel, dataset: Dataset, *, target: floa
 
     if not 0.0 < target < 1.0:
         raise ValueError(f"target coverage must lie in (0, 1), got {target!r}")
-    trajectories = _trajectories(model)
+    trajectories = held_out_trajectories(model)
     if not trajectories or "Q" not in model.calibration:
         raise ValueError("the model has no calibrated Q and held-out trajectories (model.calibration['Q'], "
                          "['trajectories']); calibrate it first (dks_gym.models.calibrate)")
@@ -140,4 +148,4 @@ def tune_if_missing(model: FilterableModel, dataset: Dataset, *, progress: bool 
 
 
 __all__ = ["BISECTIONS", "SCALE_RANGE", "TARGET_COVERAGE", "calibrate_process_noise", "held_out_coverage",
-           "tune_if_missing", "tune_process_noise"]
+           "held_out_run", "held_out_trajectories", "tune_if_missing", "tune_process_noise"]
