@@ -6,11 +6,13 @@ something independent:
   odd grids and edges), and after a weight changes (the precomputed stages follow it);
 * the formula it replaces, on the lite models in float32: ``r`` forward-mode Jacobian-vector products of the
   whole decoder (Koopman, MLP; pDMD's exact Jacobian times the factor: tests/test_pdmd.py);
-* the fallback where the decoder has an activation the hand linearization does not know.
+* the fallback where the decoder has an activation the hand linearization does not know;
+* the workspace kept between calls: the same numbers after calls of other sizes and from two threads at once.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import copy
 import dataclasses
 
@@ -112,6 +114,27 @@ def test_an_unknown_activation_falls_back_to_jacobian_vector_products() -> None:
     torch.testing.assert_close(var, _jvp_variance(tanh_gelu, z, mu, psd_sqrt(P)), rtol=0, atol=0)
     with pytest.raises(TypeError, match="exact GELU"):
         decoder_variance(tanh_gelu.decoder, z, psd_sqrt(P))
+
+
+def test_the_kept_workspace_changes_no_result() -> None:
+    """The padded fields are kept from call to call (per thread, weight set and column count): a result
+    stays as returned after later calls of other sizes, and threads calling at once do not share fields."""
+    decoder = _tiny_decoder("1d-upsample")
+    g = torch.Generator().manual_seed(3)
+    cases = [(torch.randn(b, R, generator=g, dtype=torch.float64),
+              torch.randn(b, R, d, generator=g, dtype=torch.float64)) for b, d in ((3, 4), (2, 4), (3, 2), (5, 4))]
+    results = [decoder_variance(decoder, x, f) for x, f in cases]
+    for (x, f), var in zip(cases, results):  # each checked only after every call has run
+        torch.testing.assert_close(var.flatten(1), _autodiff_variance(decoder, x, f), rtol=1e-12, atol=1e-12)
+    # Two threads at once, on a decoder big enough for torch's operators (which release the GIL) to overlap.
+    lite = build_model("burgers", "koopman", r=8, preset="lite", seed=0).decoder
+    inputs = [(torch.randn(64, 8, generator=g), torch.randn(64, 8, 8, generator=g)) for _ in range(2)]
+    alone = [decoder_variance(lite, *case) for case in inputs]
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        together = list(pool.map(lambda case: [decoder_variance(lite, *case) for _ in range(10)], inputs))
+    for runs, var in zip(together, alone):
+        for run in runs:
+            torch.testing.assert_close(run, var, rtol=0, atol=0)
 
 
 def test_bad_shapes_raise_clear_errors() -> None:

@@ -222,8 +222,15 @@ def gaussian_scores(estimate: torch.Tensor, std: torch.Tensor, truth: torch.Tens
     def mean_of(t: torch.Tensor) -> np.ndarray:
         return (t.sum(dim=(1, 2), dtype=torch.float64) / cells).cpu().numpy()
 
-    return {"coverage": mean_of(err.abs() <= Z95 * s), "nees": mean_of(z.square()), "crps": mean_of(_crps(z, s)),
-            "predicted_mse": mean_of(s.square())}
+    # In place where a term is this call's own: each pass over a vector env's fields costs as much as the
+    # arithmetic, and fresh memory a page fault per 4 kB.
+    coverage = mean_of(err.abs_() <= Z95 * s)
+    z2 = z.square()
+    nees = mean_of(z2)
+    # _crps, with z^2 shared with the NEES
+    crps = torch.div(z, _SQRT_2).erf_().mul_(z).add_(z2.mul_(-0.5).exp_(), alpha=2.0 / _SQRT_2PI)
+    crps = mean_of(crps.sub_(1.0 / _SQRT_PI).mul_(s))
+    return {"coverage": coverage, "nees": nees, "crps": crps, "predicted_mse": mean_of(s.square_())}
 
 
 __all__ = [
