@@ -17,7 +17,8 @@ products through torch's convolutions cost about 4 decodes each (``benchmarks/un
   are a strided view of the zero-padded field and a stage is one batched matrix product per window offset
   of the other axes: no upsampled field is ever stored, and torch's convolutions, 5-70x slower on the lite
   decoders' 1-8 channels, are not called;
-* elements go through in chunks that keep a stage's tangent fields within a few MB (cache).
+* elements go through in chunks that keep a stage's tangent fields within a few MB (cache), written into
+  fields kept from call to call (:func:`_workspace`: fresh pages fault on their first touch).
 
 Decoders whose per-cell blocks would exceed :data:`KERNEL_NUMBERS` (the paper-size 2D and 3D ones, where
 the convolutions' own cost dominates anyway) are not handled (:func:`supports_decoder_variance`).
