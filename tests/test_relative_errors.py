@@ -49,6 +49,22 @@ def test_relative_l2_against_numpy_and_the_mse() -> None:
     np.testing.assert_array_equal(ctf_score(np.array([0.25, np.nan])), [75.0, np.nan])
 
 
+
+@pytest.mark.parametrize("scored", [(2, 3), (0, 3), (1,)])
+def test_a_run_of_scored_channels_reads_the_same_cells_as_a_list(scored: tuple[int, ...]) -> None:
+    """Scored channels in a run are read through a view (no copy), others by index: both against numpy,
+    the MSE standardized by a per-channel std too."""
+    rng = np.random.default_rng(1)
+    truth = rng.normal(size=(2, 4, 5, 3))
+    estimate = truth + 0.1 * rng.normal(size=truth.shape)
+    std = np.array([0.5, 2.0, 4.0, 8.0])
+    total, per_channel = relative_l2_errors(torch.as_tensor(estimate), torch.as_tensor(truth), scored)
+    np.testing.assert_allclose(total, _direct(estimate, truth, list(scored))[0], rtol=1e-12)
+    np.testing.assert_allclose(per_channel, _direct(estimate, truth, list(scored))[1], rtol=1e-12)
+    diff = (estimate - truth)[:, list(scored)] / std[list(scored)][None, :, None, None]
+    mse = field_errors(torch.as_tensor(estimate), torch.as_tensor(truth), scored, torch.as_tensor(std))
+    np.testing.assert_allclose(mse.numpy(), (diff**2).mean(axis=(1, 2, 3)), rtol=1e-12)
+
 @pytest.fixture
 def dambreak(make_synthetic) -> tuple[Dataset, object]:
     """A five-channel benchmark (synthetic dambreak data) and an untrained calibrated Koopman model."""

@@ -11,6 +11,8 @@ grid (solid cells included, as Eq. 18 does; no benchmark masks them out of the e
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
@@ -18,10 +20,18 @@ import torch
 def field_errors(estimate: torch.Tensor, truth: torch.Tensor, scored: tuple[int, ...],
                  std: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 18: MSE over the scored channels and all cells, per batch element; standardized when ``std`` is given."""
-    diff = (estimate[:, list(scored)] - truth[:, list(scored)]).flatten(2)
+    pick = scored_channels(scored)
+    diff = (estimate[:, pick] - truth[:, pick]).flatten(2)
     if std is not None:
-        diff = diff / std[list(scored)].to(diff)[None, :, None]
-    return diff.pow(2).mean(dim=(1, 2))
+        diff = diff.div_(std[pick].to(diff)[None, :, None])  # in place: diff is this call's own
+    return diff.pow_(2).mean(dim=(1, 2))
+
+
+def scored_channels(scored: Sequence[int]) -> slice | list[int]:
+    """The index of the ``scored`` channels along a field's channel axis: a slice where they are a run (a
+    view, no copy: Burgers scores channel 0 of 1, the cylinder 0-2 of 3), else the list."""
+    index = [int(c) for c in scored]
+    return slice(index[0], index[-1] + 1) if index and index == list(range(index[0], index[-1] + 1)) else index
 
 
 def relative_l2_errors(estimate: torch.Tensor, truth: torch.Tensor,
@@ -37,10 +47,10 @@ def relative_l2_errors(estimate: torch.Tensor, truth: torch.Tensor,
     NaN there, never a floor that would make one up (records store it as null, tables print ``-``).
     Computed in float64 whatever the estimate's dtype.
     """
-    index = list(scored)
-    x_hat = estimate[:, index].detach().double().flatten(2)
-    x = truth[:, index].to(x_hat).flatten(2)
-    error, norm = (x_hat - x).pow(2).sum(dim=2), x.pow(2).sum(dim=2)  # (B, n_scored) squared norms per channel
+    pick = scored_channels(scored)
+    x_hat = estimate[:, pick].detach().double().flatten(2)
+    x = truth[:, pick].to(x_hat).flatten(2)
+    error, norm = (x_hat - x).pow_(2).sum(dim=2), x.pow(2).sum(dim=2)  # (B, n_scored) squared norms per channel
 
     def ratio(num: torch.Tensor, den: torch.Tensor) -> np.ndarray:
         den = den.cpu().numpy()
@@ -56,4 +66,4 @@ def ctf_score(relative_l2: np.ndarray | float) -> np.ndarray | float:
     return 100.0 * (1.0 - relative_l2)
 
 
-__all__ = ["ctf_score", "field_errors", "relative_l2_errors"]
+__all__ = ["ctf_score", "field_errors", "relative_l2_errors", "scored_channels"]

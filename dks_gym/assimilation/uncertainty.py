@@ -31,6 +31,7 @@ from ..dataset import Dataset
 from ..filters.covariance import psd_sqrt
 from ..models import FilterableModel, LatentModel
 from ..models.calibration import calibrate
+from .errors import scored_channels
 
 #: The two-sided 95 % quantile of the standard normal, Phi^-1(0.975).
 Z95 = 1.959963984540054
@@ -207,8 +208,7 @@ def gaussian_scores(estimate: torch.Tensor, std: torch.Tensor, truth: torch.Tens
     Returns (B,) float64 arrays.
     """
     idx = list(scored)
-    # a run of channels is a view, not a copy: Burgers scores channel 0 of 1
-    pick = slice(idx[0], idx[-1] + 1) if idx and idx == list(range(idx[0], idx[-1] + 1)) else idx
+    pick = scored_channels(idx)
     mean = estimate[:, pick].flatten(2)
     x = truth[:, pick].flatten(2).to(mean)
     s = std[:, pick].flatten(2).to(mean)
