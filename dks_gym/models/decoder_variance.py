@@ -110,7 +110,7 @@ def decoder_variance(decoder: ConvDecoder, x: torch.Tensor, factor: torch.Tensor
 def _workspace(decoder: ConvDecoder, lin: _Linearization, d: int) -> dict:
     """The padded fields the chunks of :func:`decoder_variance` write, kept from call to call for this
     thread, this weight set and ``d`` columns. Fresh memory costs a page fault per 4 kB: allocated anew at
-    every call, these fields cost a quarter of the std of a vector env step (Burgers, N = 256). Per thread,
+    every call, these fields cost a fifth of the std of a vector env step (Burgers, N = 256). Per thread,
     so that two threads decoding with one model do not share them."""
     spaces = getattr(_LOCAL, "spaces", None)
     if spaces is None:
