@@ -212,25 +212,26 @@ def test_decoder_jacobian_equals_central_differences_of_the_decoder():
         torch.testing.assert_close(G[..., i], fd, rtol=1e-6, atol=1e-8)
 
 
-@pytest.mark.parametrize("preset", ["lite", "paper"])
-def test_sensor_local_jacobian_equals_central_differences_of_the_whole_decoder(preset):
+@pytest.mark.parametrize(("preset", "r"), [("lite", 4), ("paper", 4), ("lite", 20)])
+def test_sensor_local_jacobian_equals_central_differences_of_the_whole_decoder(preset, r):
     """The filters' observation Jacobian decodes only each sensor's window of the bottleneck; it must equal the
-    derivative of the whole decode at the sensors, at the grid's edges (where the window is clamped) too."""
-    model = build_model("burgers", "mlp", r=4, preset=preset, seed=0).double()
+    derivative of the whole decode at the sensors, at the grid's edges (where the window is clamped) too.
+    Through the dense layers it carries the r columns forward (16 sensors > r = 4) or the 16 rows back (r = 20)."""
+    model = build_model("burgers", "mlp", r=r, preset=preset, seed=0).double()
     assert model.decoder.window() == (5,)  # 2 * 2 + 1 of the 128 bottleneck cells
     torch.manual_seed(5)
-    z = torch.randn(3, 4, dtype=torch.float64)
+    z = torch.randn(3, r, dtype=torch.float64)
     mu = _mu_grid("burgers", 3)
     rng = np.random.default_rng(0)
     sensors = np.stack([np.r_[0, 1, 7, 8, 1015, 1022, 1023, rng.choice(1024, 9, replace=False)] for _ in range(3)])
     jacobian = model.filter_observe_jacobian(mu, lambda n: sensors.repeat(n // 3, axis=0), "u")
     h_local, J = jacobian(z)
-    assert J.shape == (3, 16, 4)
+    assert J.shape == (3, 16, r)
     with torch.no_grad():
         torch.testing.assert_close(h_local, model.decode(z, mu).flatten(2)[:, 0].gather(1, torch.as_tensor(sensors)),
                                    rtol=1e-12, atol=1e-12)
     h = 1e-6
-    for i in range(4):
+    for i in range(r):
         dz = torch.zeros_like(z)
         dz[:, i] = h
         with torch.no_grad():

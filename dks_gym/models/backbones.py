@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from .convolution import CONV, DECONV, DECONV_FN, UPSAMPLE_MODE, channels_last, convolution, stride_one_transposed
+from .dense_derivatives import fc_jacobian, fc_vjp
 from .embedding import ParameterEmbedding
 from .presets import BackboneSpec, BenchmarkShape
 
@@ -55,31 +56,6 @@ def _grid_padding(shape: BenchmarkShape, spec: BackboneSpec) -> tuple[int, ...]:
     """Cells added at the upper end of each axis to reach a multiple of 2**stages (zero on the paper's grids)."""
     factor = _STRIDE ** len(spec.conv_channels)
     return tuple(b * factor - n for b, n in zip(_bottleneck_grid(shape, spec), shape.grid))
-
-
-def gelu_slope(h: torch.Tensor) -> torch.Tensor:
-    """The derivative of the exact GELU at ``h``: ``Phi(h) + h phi(h)``."""
-    return 0.5 * (1 + torch.erf(h / math.sqrt(2))) + h * torch.exp(-0.5 * h * h) / math.sqrt(2 * math.pi)
-
-
-def fc_jacobian(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
-    """d layers(x) / dx per row, (N, out, in), for a stack of Linear layers and exact GELUs (the chain rule by
-    hand, carried transposed so that each Linear is one matrix product over all rows: forward-mode autodiff
-    through vmap costs several times more here)."""
-    with torch.no_grad():
-        jac_t = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)  # (in, features), shared until the first GELU
-        h = x
-        for layer in layers:
-            if isinstance(layer, nn.Linear):
-                jac_t = jac_t @ layer.weight.T
-                h = layer(h)
-            elif isinstance(layer, nn.GELU) and layer.approximate == "none":
-                jac_t = jac_t * gelu_slope(h)[:, None, :]
-                h = layer(h)
-            else:
-                raise TypeError(f"no Jacobian rule for {type(layer).__name__} in the decoder's dense layers")
-    jac_t = jac_t.expand(x.shape[0], -1, -1) if jac_t.ndim == 2 else jac_t
-    return jac_t.mT
 
 
 class ConvEncoder(nn.Module):
@@ -470,7 +446,9 @@ class ConvDecoder(nn.Module):
         # d values / d hidden: the gradient's weighted sum of the last layer's rows, without gathering them.
         v = nn.functional.embedding_bag(index.reshape(n * m, -1), last.weight,
                                         per_sample_weights=grad.reshape(n * m, -1), mode="sum")
-        jac = v.reshape(n, m, -1) @ fc_jacobian(hidden_net, x) if len(hidden_net) else v.reshape(n, m, -1)
+        v = v.reshape(n, m, -1)
+        # d values / d x through the dense layers: rows back through them where fewer than the columns
+        jac = fc_vjp(hidden_net, x, v) if m <= x.shape[1] else v @ fc_jacobian(hidden_net, x)
         return values.detach().reshape(n, m), jac.detach()
 
 

@@ -36,8 +36,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from .backbones import ConvDecoder, gelu_slope
+from .backbones import ConvDecoder
 from .convolution import UPSAMPLE_MODE
+from .dense_derivatives import gelu_slope
 
 #: Numbers in the largest tangent field of one chunk (cells x channels x elements x columns): 4 MB in float32.
 CHUNK_NUMBERS = 2**20
