@@ -23,17 +23,10 @@ def fc_jacobian(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     hand, carried transposed so that each Linear is one matrix product over all rows: forward-mode autodiff
     through vmap costs several times more here)."""
     with torch.no_grad():
+        slopes = iter(_gelu_slopes(layers, x))
         jac_t = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)  # (in, features), shared until the first GELU
-        h = x
         for layer in layers:
-            if isinstance(layer, nn.Linear):
-                jac_t = jac_t @ layer.weight.T
-                h = layer(h)
-            elif isinstance(layer, nn.GELU) and layer.approximate == "none":
-                jac_t = jac_t * gelu_slope(h)[:, None, :]
-                h = layer(h)
-            else:
-                raise TypeError(f"no Jacobian rule for {type(layer).__name__} in the decoder's dense layers")
+            jac_t = jac_t @ layer.weight.T if isinstance(layer, nn.Linear) else jac_t * next(slopes)[:, None, :]
     jac_t = jac_t.expand(x.shape[0], -1, -1) if jac_t.ndim == 2 else jac_t
     return jac_t.mT
 
@@ -42,18 +35,24 @@ def fc_vjp(layers: nn.Sequential, x: torch.Tensor, v: torch.Tensor) -> torch.Ten
     """``v @ d layers(x) / dx`` per row, ``v`` (N, m, out) -> (N, m, in), for the layers of
     :func:`fc_jacobian`: the chain rule from the output back, so the ``m`` rows of ``v`` pass each layer
     instead of the ``in`` columns of the Jacobian (fewer numbers where ``m < in``: 16 sensors against r = 32)."""
-    slopes = []
     with torch.no_grad():
-        h = x
-        for layer in layers:
-            if isinstance(layer, nn.GELU) and layer.approximate == "none":
-                slopes.append(gelu_slope(h)[:, None, :])
-            elif not isinstance(layer, nn.Linear):
-                raise TypeError(f"no Jacobian rule for {type(layer).__name__} in the decoder's dense layers")
-            h = layer(h)
+        slopes = _gelu_slopes(layers, x)
         for layer in reversed(layers):
-            v = v @ layer.weight if isinstance(layer, nn.Linear) else v * slopes.pop()
+            v = v @ layer.weight if isinstance(layer, nn.Linear) else v * slopes.pop()[:, None, :]
     return v
+
+
+def _gelu_slopes(layers: nn.Sequential, x: torch.Tensor) -> list[torch.Tensor]:
+    """The forward pass of ``layers`` at ``x`` (N, in): the slope at each GELU's input (N, features), in layer
+    order. TypeError for a layer other than a Linear or an exact GELU (no rule for it)."""
+    slopes, h = [], x
+    for layer in layers:
+        if isinstance(layer, nn.GELU) and layer.approximate == "none":
+            slopes.append(gelu_slope(h))
+        elif not isinstance(layer, nn.Linear):
+            raise TypeError(f"no Jacobian rule for {type(layer).__name__} in the decoder's dense layers")
+        h = layer(h)
+    return slopes
 
 
 __all__ = ["fc_jacobian", "fc_vjp", "gelu_slope"]
