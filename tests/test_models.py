@@ -551,3 +551,16 @@ def test_sensor_local_jacobian_and_inference_decoder_on_cuda_match_cpu():
         out[device] = (h.cpu(), J.cpu(), fields.cpu(), readings.cpu())
     for a, b in zip(out["cuda"], out["cpu"]):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_dense_derivatives_refuse_a_layer_without_a_rule():
+    """fc_jacobian and fc_vjp know Linear layers and exact GELUs only; anything else is an error that names it,
+    not a wrong Jacobian."""
+    from dks_gym.models.dense_derivatives import fc_jacobian, fc_vjp
+
+    layers = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.Tanh(), torch.nn.Linear(4, 5))
+    x = torch.randn(2, 3)
+    with pytest.raises(TypeError, match="no Jacobian rule for Tanh"):
+        fc_jacobian(layers, x)
+    with pytest.raises(TypeError, match="no Jacobian rule for Tanh"):
+        fc_vjp(layers, x, torch.randn(2, 6, 5))
