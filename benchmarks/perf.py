@@ -563,7 +563,7 @@ def before_formulation(model: Any) -> None:
     encoder, decoder = model.encoder.backbone, model.decoder
     encoder.forward = lambda x: encoder.fc(encoder.conv(x).flatten(1))
     convolve = decoder.convolve
-    decoder.convolve = lambda h: decoder.reference_convolve(h) if decoder.training else convolve(h)
+    decoder.convolve = lambda h, *rest: decoder.reference_convolve(h) if decoder.training else convolve(h, *rest)
     if model.kind == "koopman":
         model.latent_map.train = lambda mode=True: torch.nn.Module.train(model.latent_map, False)
 

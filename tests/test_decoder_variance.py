@@ -4,6 +4,8 @@ something independent:
 * the whole Jacobian from torch's autodiff (``torch.autograd.functional.jacobian``) in float64 on tiny
   decoders of every shape the presets use (1D, 2D and 3D; upsampling and strided transposed convolutions;
   odd grids and edges), and after a weight changes (the precomputed stages follow it);
+* the same from the GELU inputs the decode records (one forward pass for the field and its variance), and
+  the field then bitwise the decode's;
 * the formula it replaces, on the lite models in float32: ``r`` forward-mode Jacobian-vector products of the
   whole decoder (Koopman, MLP; pDMD's exact Jacobian times the factor: tests/test_pdmd.py);
 * the fallback where the decoder has an activation the hand linearization does not know;
@@ -70,6 +72,39 @@ def test_decoder_variance_equals_the_autodiff_jacobian(name: str) -> None:
     assert var.shape == (3, decoder.deconv[-1].out_channels, *DECODERS[name][2])
     reference = _autodiff_variance(decoder, x, factor)
     torch.testing.assert_close(var.flatten(1), reference, rtol=1e-12, atol=1e-12 * float(reference.max()))
+
+
+@pytest.mark.parametrize("name", DECODERS)
+def test_decoder_variance_from_the_decoders_own_pass_equals_the_autodiff_jacobian(name: str) -> None:
+    """The GELU inputs recorded by the decode (``decoder(x, preactivations)``) in place of a primal pass."""
+    decoder = _tiny_decoder(name)
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(3, R, generator=g, dtype=torch.float64)
+    factor = torch.randn(3, R, 4, generator=g, dtype=torch.float64)
+    preactivations: list[torch.Tensor] = []
+    out = decoder(x, preactivations)
+    assert torch.equal(out, decoder(x)) and len(preactivations) == len(decoder.deconv) - 1
+    var = decoder_variance(decoder, x, factor, preactivations)
+    reference = _autodiff_variance(decoder, x, factor)
+    torch.testing.assert_close(var.flatten(1), reference, rtol=1e-12, atol=1e-12 * float(reference.max()))
+    if preactivations:
+        with pytest.raises(ValueError, match="preactivations must be what decoder"):
+            decoder_variance(decoder, x[:2], factor[:2], preactivations)
+
+
+def test_decode_with_variance_is_decode_and_its_variance(burgers_small) -> None:
+    """One forward pass for both: the field bitwise decode()'s (300 rows: the decode splits them in blocks),
+    the variance the separate call's to float32 round-off."""
+    model = build_model("burgers", "koopman", r=8, preset="lite", dataset=Dataset(burgers_small), seed=0)
+    g = torch.Generator().manual_seed(5)
+    z, mu = torch.randn(300, 8, generator=g), torch.rand(300, generator=g)
+    factor = torch.randn(300, 8, 8, generator=g) / 3
+    with torch.no_grad():
+        field, var = model.decode_with_variance(z, mu, factor)
+        assert torch.equal(field, model.decode(z, mu))
+        alone = model.decoder_variance(z, mu, factor)
+    scale = alone.amax(dim=(1, 2), keepdim=True)
+    assert float(((var - alone).abs() / scale).max()) < 1e-5
 
 
 def test_decoder_variance_follows_a_weight_change() -> None:

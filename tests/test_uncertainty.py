@@ -277,6 +277,17 @@ def test_gaussian_scores_match_a_direct_numpy_computation() -> None:
     np.testing.assert_allclose(scores["crps"], np.mean(gaussian_crps(t, e, s), axis=1))
 
 
+def test_gaussian_scores_of_an_overconfident_float32_filter_match_float64() -> None:
+    # |z| from 0 to 40: past 13.2 exp(-z^2 / 2) leaves the normal float32 numbers (floored in gaussian_scores)
+    z = np.linspace(-40.0, 40.0, 2001).reshape(1, 1, -1)
+    std = np.full_like(z, 0.3)
+    est, truth = np.zeros_like(z), z * std
+    as32 = [torch.from_numpy(a.astype(np.float32)) for a in (est, std, truth)]
+    scores = gaussian_scores(*as32, (0,))
+    np.testing.assert_allclose(scores["crps"], np.mean(gaussian_crps(truth, est, std), axis=(1, 2)), rtol=2e-6)
+    np.testing.assert_allclose(scores["nees"], np.mean(z**2, axis=(1, 2)), rtol=2e-6)
+
+
 # (d) the wrappers --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("filt", ["ekf", "enkf", "forward"])

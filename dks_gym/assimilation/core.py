@@ -29,7 +29,7 @@ from ..threads import torch_threads
 from .config import FilterConfig
 from .errors import ctf_score, field_errors, relative_l2_errors
 from .spread import rank_cells, spread_skill, truth_ranks
-from .uncertainty import decoded_ensemble, gaussian_scores, jacobian_variance
+from .uncertainty import decoded_ensemble, decoded_variance, gaussian_scores, jacobian_variance
 
 # Per model, per dataset file: the approximate initial latent state (it costs one pass over the train split).
 _APPROXIMATE_CACHE: "weakref.WeakKeyDictionary[FilterableModel, dict[str, torch.Tensor]]" = weakref.WeakKeyDictionary()
@@ -248,7 +248,12 @@ class Assimilation:
     def _snapshot(self, envs: Sequence[SensingEnv], with_diagnostics: bool = False,
                   stepped: bool = True) -> Snapshot:
         with torch.no_grad():
-            estimate = self.model.decode(self._latent_mean(), self._mu)
+            if self.uncertainty and not isinstance(self._now, EnKF):  # diag(G P G^T) from the same decoder pass
+                r = self.model.r
+                estimate, variance = decoded_variance(self.model, self._latent_mean(), self._mu,
+                                                      self._now.cov[:, :r, :r])
+            else:
+                estimate, variance = self.model.decode(self._latent_mean(), self._mu), None
         truth = self._truth(envs).to(estimate)
         bench = envs[0].benchmark
         std = torch.as_tensor(envs[0].dataset.stats_std, device=estimate.device)
@@ -260,7 +265,7 @@ class Assimilation:
                         latent_mean=self._latent_mean().cpu().numpy())
         if self.uncertainty:
             cells = self._checked_cells() if with_diagnostics and self._ranked is not None else None
-            snap.estimate_std, members = self._predictive(estimate, cells)
+            snap.estimate_std, members = self._predictive(estimate, cells, variance)
             scores = gaussian_scores(estimate, snap.estimate_std, truth, bench.scored_indices,
                                      envs[0].dataset.stats_std)
             snap.coverage, snap.nees, snap.crps = scores["coverage"], scores["nees"], scores["crps"]
@@ -309,9 +314,10 @@ class Assimilation:
         cells = np.concatenate([sensors, np.broadcast_to(fixed, (len(sensors), len(fixed)))], axis=1)
         return torch.as_tensor(cells, device=self.device)
 
-    def _predictive(self, estimate: torch.Tensor | None,
-                    cells: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """:meth:`predictive_std` and, for the EnKF with ``cells`` (B, k), its decoded members there (B, n, k)."""
+    def _predictive(self, estimate: torch.Tensor | None, cells: torch.Tensor | None = None,
+                    variance: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`predictive_std` and, for the EnKF with ``cells`` (B, k), its decoded members there (B, n, k).
+        ``variance``: the EKF's ``diag(G P G^T)`` when the caller has it (:func:`decoded_variance`)."""
         members = None
         with torch.no_grad():
             r = self.model.r  # the model's part of the state (the rest: estimated sensor biases)
@@ -320,6 +326,8 @@ class Assimilation:
             if isinstance(self._now, EnKF):
                 var, members = decoded_ensemble(self.model, self._now.ensemble[..., :r], self._mu, center=estimate,
                                                 cells=cells)
+            elif variance is not None:
+                var = variance
             else:
                 var = jacobian_variance(self.model, self._now.mean[:, :r], self._mu, self._now.cov[:, :r, :r])
             var = var.reshape(estimate.shape)  # in place from here: var is this call's own

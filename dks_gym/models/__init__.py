@@ -24,11 +24,11 @@ from .checkpoint import (
 from .embedding import ParameterEmbedding
 from .koopman import KoopmanOperator, dissipative_generator
 from .build import NEURAL_MAPS, build_model
-from .latent_model import KoopmanModel, LatentModel, NeuralLatentModel, count_parameters, model_device, model_dtype
+from .latent_model import KoopmanModel, LatentModel, NeuralLatentModel, count_parameters
 from .mlp import MLPTransition
 from .pdmd import PDMD
 from .pod import streamed_pod
-from .protocol import FILTERABLE_MEMBERS, FilterableModel, missing_members
+from .protocol import FILTERABLE_MEMBERS, FilterableModel, missing_members, model_device, model_dtype
 from .presets import (
     BENCHMARK_SHAPES,
     MODEL_KINDS,

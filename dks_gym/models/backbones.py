@@ -126,12 +126,16 @@ class ConvDecoder(nn.Module):
         self._layouts.clear()  # products of the weights in their old dtype or device
         return super()._apply(fn, *args, **kwargs)
 
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        """(B, r) -> (B, C_out, *grid) normalized output (cropped from the padded grid where there is one)."""
-        out = self.convolve(self.fc(z).view(z.shape[0], *self.bottleneck))
+    def forward(self, z: torch.Tensor, preactivations: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """(B, r) -> (B, C_out, *grid) normalized output (cropped from the padded grid where there is one).
+
+        ``preactivations``: a list that receives, per convolutional stage followed by a GELU, that GELU's input
+        (B, C, *cells) (what :func:`~dks_gym.models.decoder_variance.decoder_variance` linearizes at, so that
+        the decode and its variance share one forward pass); the output is the same either way."""
+        out = self.convolve(self.fc(z).view(z.shape[0], *self.bottleneck), preactivations)
         return out if self.crop is None else out[self.crop].contiguous()  # contiguous as uncropped: callers view it
 
-    def convolve(self, h: torch.Tensor) -> torch.Tensor:
+    def convolve(self, h: torch.Tensor, preactivations: list[torch.Tensor] | None = None) -> torch.Tensor:
         """The convolutional part: bottleneck features (B, C, *b) -> (B, C_out, *grid) for the whole grid, or
         (B, C_out, *(b * 2**stages)) for a window of ``b`` bottleneck cells (every stage is translation-equivariant,
         so a window's output equals the full output wherever its receptive field stays inside the window).
@@ -141,35 +145,47 @@ class ConvDecoder(nn.Module):
         torch's ConvTranspose on the whole batch to float32 round-off, 4-6x faster on CPU for large batches
         (benchmarks/perf.py). In training on the CPU the maps are in channels-last layout
         (:func:`~dks_gym.models.convolution.convolution`).
-        :meth:`reference_convolve` is torch's ConvTranspose, kept for the tests.
+        :meth:`reference_convolve` is torch's ConvTranspose, kept for the tests. ``preactivations``: as in
+        :meth:`forward`.
         """
         cells = math.prod(h.shape[2:]) * 2 ** (len(self.deconv) * self.ndim)
         rows = max(1, (1 << 17) // cells)
         if h.shape[0] <= rows:
-            return self._convolve(h, fast=True)
-        return torch.cat([self._convolve(block, fast=True) for block in h.split(rows)])
+            return self._convolve(h, fast=True, preactivations=preactivations)
+        parts = [[] for _ in h.split(rows)] if preactivations is not None else None
+        out = torch.cat([self._convolve(block, fast=True, preactivations=None if parts is None else parts[j])
+                         for j, block in enumerate(h.split(rows))])
+        if parts is not None:
+            preactivations.extend(torch.cat(stage) for stage in zip(*parts))
+        return out
 
     def reference_convolve(self, h: torch.Tensor) -> torch.Tensor:
         """:meth:`convolve` with torch's ConvTranspose layers on the whole batch: the reference it is tested
         against."""
         return self._convolve(h, fast=False)
 
-    def _convolve(self, h: torch.Tensor, fast: bool) -> torch.Tensor:
+    def _convolve(self, h: torch.Tensor, fast: bool, preactivations: list[torch.Tensor] | None = None) -> torch.Tensor:
         last = fast and channels_last(self, h)
         for i in range(len(self.deconv)):
-            h = self._stage(i, h, fast, last)
+            h = self._stage(i, h, fast, last, preactivations)
         return h.contiguous() if last else h
 
-    def _stage(self, i: int, h: torch.Tensor, fast: bool, last: bool = False) -> torch.Tensor:
+    def _stage(self, i: int, h: torch.Tensor, fast: bool, last: bool = False,
+               preactivations: list[torch.Tensor] | None = None) -> torch.Tensor:
         """Stage ``i`` of the convolutional part: x2 in every axis (upsampling and a size-preserving transposed
-        convolution, or a stride-2 one), then GELU unless it is the last."""
+        convolution, or a stride-2 one), then GELU unless it is the last (its input appended to
+        ``preactivations`` when given)."""
         layer = self.deconv[i]
         if self.mode == "upsample":
             h = nn.functional.interpolate(h, scale_factor=2, mode=UPSAMPLE_MODE[self.ndim])
             h = stride_one_transposed(layer, h, channels_last=last) if fast else layer(h)
         else:
             h = layer(h)
-        return self.act(h) if i < len(self.deconv) - 1 else h
+        if i == len(self.deconv) - 1:
+            return h
+        if preactivations is not None:
+            preactivations.append(h)
+        return self.act(h)
 
     def _stage_matrix(self, i: int, widths: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Stage ``i`` before its GELU on a window of ``widths`` cells as a matrix and a bias, ``(K_in, K_out)`` and

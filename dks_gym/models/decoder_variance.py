@@ -18,7 +18,9 @@ products through torch's convolutions cost about 4 decodes each (``benchmarks/un
   of the other axes: no upsampled field is ever stored, and torch's convolutions, 5-70x slower on the lite
   decoders' 1-8 channels, are not called;
 * elements go through in chunks that keep a stage's tangent fields within a few MB (cache), written into
-  fields kept from call to call (:func:`_workspace`: fresh pages fault on their first touch).
+  fields kept from call to call (:func:`_workspace`: fresh pages fault on their first touch);
+* a caller that decodes ``x`` anyway passes the GELU inputs its decode recorded (``preactivations``), and
+  the slopes are read off them instead of a primal pass here.
 
 Decoders whose per-cell blocks would exceed :data:`KERNEL_NUMBERS` (the paper-size 2D and 3D ones, where
 the convolutions' own cost dominates anyway) are not handled (:func:`supports_decoder_variance`).
@@ -30,7 +32,7 @@ import itertools
 import math
 import threading
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -83,11 +85,14 @@ def supports_decoder_variance(decoder: nn.Module) -> bool:
     return exact and plain and sum(_kernel_numbers(decoder, i) for i in range(1, len(decoder.deconv))) <= KERNEL_NUMBERS
 
 
-def decoder_variance(decoder: ConvDecoder, x: torch.Tensor, factor: torch.Tensor) -> torch.Tensor:
+def decoder_variance(decoder: ConvDecoder, x: torch.Tensor, factor: torch.Tensor,
+                     preactivations: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
     """``diag(G F F^T G^T)`` of ``decoder`` at its inputs ``x`` (B, r): (B, C_out, *grid), normalized units.
 
     ``factor`` (B, r, d): the columns ``f_j`` of a factor of each element's covariance; ``G`` the decoder's
-    Jacobian at ``x``, never formed. Exact: no sampling, no finite differences.
+    Jacobian at ``x``, never formed. Exact: no sampling, no finite differences. ``preactivations``: what
+    ``decoder(x, preactivations=[])`` recorded, when the caller decodes ``x`` anyway: the GELU slopes are
+    then read off them instead of a primal pass of its own (the same numbers to float round-off).
     """
     if not supports_decoder_variance(decoder):
         raise TypeError("decoder_variance linearizes a ConvDecoder with exact GELU activations and per-cell "
@@ -98,7 +103,8 @@ def decoder_variance(decoder: ConvDecoder, x: torch.Tensor, factor: torch.Tensor
         lin = _linearization(decoder)
         space = _workspace(decoder, lin, factor.shape[2])
         hidden, columns = _dense_tangents(decoder.fc[:-1], x, factor, space)
-        slopes = _slopes(decoder, lin, hidden)
+        slopes = _slopes(decoder, lin, hidden) if preactivations is None else _recorded_slopes(lin, preactivations,
+                                                                                              x.shape[0])
         largest = max(_stage_numbers(decoder, i) for i in range(len(decoder.deconv)))
         step = max(1, CHUNK_NUMBERS // (largest * factor.shape[2]))
         parts = [_chunk_variance(lin, [slope[..., s:s + step] for slope in slopes], columns[:, s:s + step], space)
@@ -156,6 +162,20 @@ def _slopes(decoder: ConvDecoder, lin: _Linearization, hidden: torch.Tensor) -> 
         if i < len(lin.stages) - 1:
             pre = _products(stage, _padded_copy(stage, decoder.act(pre))) + stage.bias[:, None]
     return slopes
+
+
+def _recorded_slopes(lin: _Linearization, preactivations: Sequence[torch.Tensor], batch: int) -> list[torch.Tensor]:
+    """:func:`_slopes` from the decoder's own pre-activations (B, C, *cells), one per stage after the first."""
+    ndim = len(lin.weight.shape) - 2
+    expected = [(batch, lin.weight.shape[-2], *lin.weight.shape[:-2])]
+    expected += [(batch, stage.bias.shape[0], *(2 * c for c in stage.cells)) for stage in lin.stages[:-1]]
+    expected = expected[: len(lin.stages)]  # a one-stage decoder has no GELU between stages
+    got = [tuple(p.shape) for p in preactivations]
+    if got != expected:
+        raise ValueError(f"preactivations must be what decoder(x, preactivations=[]) records for this x, shapes "
+                         f"{expected}; got {got}")
+    rows_inner = (*range(2, ndim + 2), 1, 0)  # (B, C, *cells) -> (*cells, C, B), as _slopes lays them out
+    return [gelu_slope(p).permute(*rows_inner) for p in preactivations]  # views: a transposing copy costs more
 
 
 def _chunk_variance(lin: _Linearization, slopes: list[torch.Tensor], columns: torch.Tensor,

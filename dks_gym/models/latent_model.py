@@ -13,6 +13,7 @@ Every model is a ``torch.nn.Module`` with attributes ``benchmark``, ``kind`` ("k
     filter_observe_jacobian(mu, rows, channel)  dh/dz as the filters take it: None (autodiff) or a callable
     decoder_jacobian(z, mu)                                     -> d decode/dz (B, C, n_cells, r)
     decoder_variance(z, mu, factor)         diag(G F F^T G^T), G = d decode/dz (B, C, *grid), or None
+    decode_with_variance(z, mu, factor)     (decode(z, mu), decoder_variance(z, mu, factor)), one pass (neural)
 
 A model owns its linearization: the Koopman model hands the filters K(mu) (cached per mu), pDMD A~(mu)
 and its exact observation and decoder matrices, the MLP and xLSTM maps an autodiff Jacobian.
@@ -365,20 +366,31 @@ class NeuralLatentModel(LatentModel):
         z = self._latent(z)
         idx = self._sensor_index(sensors, z.shape[0])
         c = self._channel_index(channel)
-        x = z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0]))
-        values = self.decoder.at_cells(x, idx.expand(z.shape[0], -1), c).to(z.dtype)
+        values = self.decoder.at_cells(self._decoder_input(z, mu), idx.expand(z.shape[0], -1), c).to(z.dtype)
         return values * self.stats_std[c].to(z.dtype) + self.stats_mean[c].to(z.dtype)  # as decode() de-normalizes
 
-    def decoder_variance(self, z: torch.Tensor, mu: torch.Tensor, factor: torch.Tensor) -> torch.Tensor | None:
+    def decoder_variance(self, z: torch.Tensor, mu: torch.Tensor, factor: torch.Tensor,
+                         preactivations: list[torch.Tensor] | None = None) -> torch.Tensor | None:
         """``diag(G F F^T G^T)`` per cell, (B, C, *grid) physical units: the decoder linearized by hand, stage by
         stage (:func:`~dks_gym.models.decoder_variance.decoder_variance`: exact, the cost of a few decodes
-        rather than ``d`` Jacobian-vector products); None for a decoder it cannot linearize."""
+        rather than ``d`` Jacobian-vector products); None for a decoder it cannot linearize.
+        ``preactivations``: what :meth:`decode_normalized` recorded at this ``z`` (skips a primal pass)."""
         if not supports_decoder_variance(self.decoder):
             return None
         z = self._latent(z)
-        x = z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0]))
-        var = decoder_variance(self.decoder, x, factor.to(self._dtype))[:, : self.n_fields]
+        var = decoder_variance(self.decoder, self._decoder_input(z, mu), factor.to(self._dtype),
+                               preactivations)[:, : self.n_fields]
         return var.mul_(self._channel_view(self.stats_std, var.dtype).pow(2)).to(z.dtype)
+
+    def decode_with_variance(self, z: torch.Tensor, mu: torch.Tensor,
+                             factor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`decode` (bitwise) and :meth:`decoder_variance` at the same ``z`` from one forward pass of the
+        decoder: its GELU inputs are the slopes' arguments."""
+        if not supports_decoder_variance(self.decoder):
+            return self.decode(z, mu), None
+        preactivations: list[torch.Tensor] = []
+        field = self.denormalize(self.decode_normalized(z, mu, preactivations)[:, : self.n_fields])  # as decode()
+        return field, self.decoder_variance(z, mu, factor, preactivations)
 
     def encode(self, x: ArrayLike, mu: ArrayLike) -> torch.Tensor:
         """z = E_phi(x, mu) + e_omega(mu) from physical fields (B, C, *grid)."""
@@ -386,11 +398,16 @@ class NeuralLatentModel(LatentModel):
         z = self.encoder(xin.to(self._dtype), self._param(mu, xin.shape[0]))
         return z.to(xin.dtype)
 
-    def decode_normalized(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
-        """G_psi(z + s): all decoder output channels (B, C_out, *grid), normalized units."""
+    def decode_normalized(self, z: ArrayLike, mu: ArrayLike,
+                          preactivations: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """G_psi(z + s): all decoder output channels (B, C_out, *grid), normalized units (``preactivations``:
+        see :meth:`ConvDecoder.forward`)."""
         z = self._latent(z)
-        out = self.decoder(z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0])))
-        return out.to(z.dtype)
+        return self.decoder(self._decoder_input(z, mu), preactivations).to(z.dtype)
+
+    def _decoder_input(self, z: torch.Tensor, mu: ArrayLike) -> torch.Tensor:
+        """z + s, s = e(mu): what the decoder reads (in its dtype)."""
+        return z.to(self._dtype) + self.embed_param(self._param(mu, z.shape[0]))
 
     def decode(self, z: ArrayLike, mu: ArrayLike) -> torch.Tensor:
         """Physical fields (B, C, *grid); the sphere's cell-type output channel is dropped."""
@@ -469,22 +486,3 @@ class KoopmanModel(NeuralLatentModel):
         self._operator_cache.clear()  # device or dtype moves invalidate cached operators
         return super()._apply(fn, *args, **kwargs)
 
-
-def model_device(model: Any) -> torch.device:
-    """The device a model's buffers live on (CPU for a model without tensors)."""
-    tensor = _first_tensor(model)
-    return tensor.device if tensor is not None else torch.device("cpu")
-
-
-def model_dtype(model: Any) -> torch.dtype:
-    """The floating dtype of a model's buffers (float32 for a model without floating tensors)."""
-    tensor = _first_tensor(model)
-    return tensor.dtype if tensor is not None and tensor.is_floating_point() else torch.float32
-
-
-def _first_tensor(model: Any) -> torch.Tensor | None:
-    """The normalization buffer ``stats_mean``, else the first parameter, else None."""
-    buffer = getattr(model, "stats_mean", None)
-    if isinstance(buffer, torch.Tensor):
-        return buffer
-    return next(iter(model.parameters()), None) if hasattr(model, "parameters") else None

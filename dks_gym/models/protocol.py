@@ -4,8 +4,9 @@ The four model classes (Koopman, pDMD, MLP, xLSTM) satisfy it by inheriting from
 :class:`~dks_gym.models.LatentModel`; a model of your own satisfies it by having these members, whatever its
 base class. Exactly these are read by :mod:`dks_gym.assimilation` and the wrappers; the optional extras
 they use when present (``grid`` and ``n_fields`` to size a decoded field without decoding one, a
-``decoder_variance`` for an exact, fast predictive std, ``checkpoint_path`` to store a tuned Q scale)
-are not part of it.
+``decoder_variance`` for an exact, fast predictive std, ``decode_with_variance`` to decode the estimate and
+push its covariance through one forward pass, ``checkpoint_path`` to store a tuned Q scale) are not part
+of it. :func:`model_device` and :func:`model_dtype` read where any model's tensors live.
 """
 
 from __future__ import annotations
@@ -66,3 +67,23 @@ FILTERABLE_MEMBERS: tuple[str, ...] = (
 def missing_members(model: Any) -> list[str]:
     """The :data:`FILTERABLE_MEMBERS` that ``model`` lacks (empty for a :class:`FilterableModel`)."""
     return [name for name in FILTERABLE_MEMBERS if not hasattr(model, name)]
+
+
+def model_device(model: Any) -> torch.device:
+    """The device a model's buffers live on (CPU for a model without tensors)."""
+    tensor = _first_tensor(model)
+    return tensor.device if tensor is not None else torch.device("cpu")
+
+
+def model_dtype(model: Any) -> torch.dtype:
+    """The floating dtype of a model's buffers (float32 for a model without floating tensors)."""
+    tensor = _first_tensor(model)
+    return tensor.dtype if tensor is not None and tensor.is_floating_point() else torch.float32
+
+
+def _first_tensor(model: Any) -> torch.Tensor | None:
+    """The normalization buffer ``stats_mean``, else the first parameter, else None."""
+    buffer = getattr(model, "stats_mean", None)
+    if isinstance(buffer, torch.Tensor):
+        return buffer
+    return next(iter(model.parameters()), None) if hasattr(model, "parameters") else None
