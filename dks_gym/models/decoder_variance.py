@@ -40,7 +40,7 @@ from torch import nn
 
 from .backbones import ConvDecoder
 from .convolution import UPSAMPLE_MODE
-from .dense_derivatives import gelu_slope
+from .dense_derivatives import gelu_slope, gelu_slopes
 
 #: Numbers in the largest tangent field of one chunk (cells x channels x elements x columns): 4 MB in float32.
 CHUNK_NUMBERS = 2**20
@@ -136,7 +136,8 @@ def _dense_tangents(layers: nn.Sequential, x: torch.Tensor, factor: torch.Tensor
     one matrix product over all elements and columns, and a chunk of elements is a strided matrix), written
     into fields of ``space`` (:func:`_workspace`)."""
     batch, r, d = factor.shape
-    h, tangent = x, factor.permute(1, 0, 2)
+    slopes, h = gelu_slopes(layers, x)
+    tangent = factor.permute(1, 0, 2)
     for i, layer in enumerate(layers):
         if isinstance(layer, nn.Linear):
             key = ("dense", i, batch)
@@ -145,10 +146,8 @@ def _dense_tangents(layers: nn.Sequential, x: torch.Tensor, factor: torch.Tensor
             tangent = torch.mm(layer.weight, tangent.reshape(r, batch * d),
                                out=space[key].view(-1, batch * d)).view(-1, batch, d)
             r = tangent.shape[0]
-            h = layer(h)
-        else:  # an exact GELU (supports_decoder_variance)
-            tangent = tangent.mul_(gelu_slope(h).T[..., None])  # in place: the product above is this call's
-            h = layer(h)
+        else:  # an exact GELU (supports_decoder_variance); in place: the product above is this call's
+            tangent = tangent.mul_(slopes.pop(0).T[..., None])
     return h, tangent
 
 

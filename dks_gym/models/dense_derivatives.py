@@ -2,7 +2,7 @@
 
 The EKF's sensor Jacobian (:meth:`~dks_gym.models.backbones.ConvDecoder.sensor_jacobian`) carries the
 convolutional part by autodiff over small windows and the dense part here; the predictive std
-(:mod:`~dks_gym.models.decoder_variance`) pushes tangents through the same layers with :func:`gelu_slope`.
+(:mod:`~dks_gym.models.decoder_variance`) pushes tangents through the same layers with :func:`gelu_slopes`.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ def fc_jacobian(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     hand, carried transposed so that each Linear is one matrix product over all rows: forward-mode autodiff
     through vmap costs several times more here)."""
     with torch.no_grad():
-        slopes = iter(_gelu_slopes(layers, x))
+        slopes = iter(gelu_slopes(layers, x)[0])
         jac_t = torch.eye(x.shape[1], dtype=x.dtype, device=x.device)  # (in, features), shared until the first GELU
         for layer in layers:
             jac_t = jac_t @ layer.weight.T if isinstance(layer, nn.Linear) else jac_t * next(slopes)[:, None, :]
@@ -39,15 +39,15 @@ def fc_vjp(layers: nn.Sequential, x: torch.Tensor, v: torch.Tensor) -> torch.Ten
     :func:`fc_jacobian`: the chain rule from the output back, so the ``m`` rows of ``v`` pass each layer
     instead of the ``in`` columns of the Jacobian (fewer numbers where ``m < in``: 16 sensors against r = 32)."""
     with torch.no_grad():
-        slopes = _gelu_slopes(layers, x)
+        slopes = gelu_slopes(layers, x)[0]
         for layer in reversed(layers):
             v = v @ layer.weight if isinstance(layer, nn.Linear) else v * slopes.pop()[:, None, :]
     return v
 
 
-def _gelu_slopes(layers: nn.Sequential, x: torch.Tensor) -> list[torch.Tensor]:
+def gelu_slopes(layers: nn.Sequential, x: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
     """The forward pass of ``layers`` at ``x`` (N, in): the slope at each GELU's input (N, features), in layer
-    order. TypeError for a layer other than a Linear or an exact GELU (no rule for it)."""
+    order, and the output. TypeError for a layer other than a Linear or an exact GELU (no rule for it)."""
     slopes, h = [], x
     for layer in layers:
         if isinstance(layer, nn.GELU) and layer.approximate == "none":
@@ -55,7 +55,7 @@ def _gelu_slopes(layers: nn.Sequential, x: torch.Tensor) -> list[torch.Tensor]:
         elif not isinstance(layer, nn.Linear):
             raise TypeError(f"no Jacobian rule for {type(layer).__name__} in the decoder's dense layers")
         h = layer(h)
-    return slopes
+    return slopes, h
 
 
-__all__ = ["fc_jacobian", "fc_vjp", "gelu_slope"]
+__all__ = ["fc_jacobian", "fc_vjp", "gelu_slope", "gelu_slopes"]
