@@ -185,5 +185,9 @@ def test_decoder_variance_on_cuda_matches_cpu() -> None:
     M = torch.randn(5, 8, 8, dtype=torch.float64)
     P = M @ M.mT / 8
     cpu = jacobian_variance(model, z, mu, P)
+    field, shared = model.decode_with_variance(z, mu, psd_sqrt(P))
     cuda = jacobian_variance(model.to("cuda"), z.cuda(), mu.cuda(), P.cuda())
     torch.testing.assert_close(cuda.cpu(), cpu, rtol=1e-10, atol=1e-14)
+    field_cuda, shared_cuda = model.decode_with_variance(z.cuda(), mu.cuda(), psd_sqrt(P).cuda())
+    torch.testing.assert_close(field_cuda.cpu(), field, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(shared_cuda.cpu(), shared, rtol=1e-10, atol=1e-14)
