@@ -12,8 +12,8 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Any
 
+from .threads import set_threads  # first: it sets MKL's reproducible mode before any product (dks_gym.threads)
 from .envs import SensingEnv, register_envs
-from .threads import set_threads
 from .version import __version__
 
 register_envs()

@@ -1,7 +1,11 @@
-"""Torch threads per task (dks_gym.threads): the override order, restoring, and the heavy calls using it."""
+"""Torch threads per task (dks_gym.threads): the override order, restoring, the heavy calls using it, and the same
+bits on one thread and two (MKL's strict mode)."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -87,3 +91,39 @@ def test_filter_and_training_run_on_the_chosen_threads(clean_threads, burgers_sm
                 path=tmp_path / "m.safetensors", progress=False,
                 on_step=lambda step, terms: counts.append(torch.get_num_threads()))
     assert counts == [1, 1] and torch.get_num_threads() == 2
+
+
+_SAME_BITS = """
+import os
+import dks_gym  # before the first product: it asks MKL for products independent of the thread count
+import torch
+from dks_gym.models import build_model
+torch.manual_seed(0)
+linear, x = torch.nn.Linear(64, 32), torch.randn(10, 64)  # 10 rows: a remainder row when split over 2 threads
+xlstm = build_model("burgers", "xlstm", 32, "lite", seed=0)
+z, mu = torch.randn(10, 32), torch.linspace(0.01, 1.0, 10)
+outs = []
+for n in (1, 2):
+    torch.set_num_threads(n)
+    with torch.no_grad():
+        outs.append((linear(x), xlstm.rollout(z, mu, 30)))
+same = all(torch.equal(a, b) for a, b in zip(*outs))
+print(os.environ.get("MKL_CBWR") or "empty", int(same))
+"""
+
+
+def _same_bits(env: dict[str, str]) -> tuple[str, bool]:
+    out = subprocess.run([sys.executable, "-c", _SAME_BITS], env=env, capture_output=True, text=True, check=True)
+    mode, same = out.stdout.split()
+    return mode, same == "1"
+
+
+def test_products_and_a_rollout_give_the_same_bits_on_one_thread_and_two() -> None:
+    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    mode, same = _same_bits(env)
+    assert mode == ",".join(threads.BLAS_REPRODUCIBILITY[1:]) and same
+    # A user's own setting is kept: an empty one is MKL's default mode, where the bits differ (on MKL)
+    mode, same = _same_bits({**env, "MKL_CBWR": ""})
+    assert mode == "empty"
+    if same:
+        pytest.skip("this BLAS gives the same bits on one thread and two even without MKL's strict mode")
