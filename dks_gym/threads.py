@@ -29,7 +29,7 @@ from contextlib import contextmanager
 #: thread count. By default MKL splits a product's rows by thread and sends the remainder rows through
 #: another kernel, so one row of a (10 x 64) @ (64 x 32) product differs in its last bit between one thread
 #: and two, and a free rollout through an expanding map (the xLSTM's) grows that to a few per mille of its
-#: MSE in 100 steps. Strict mode costs no measurable time here and gives one thread its own bits. MKL reads
+#: MSE in 100 steps. Strict mode cost no measurable time on a 2-core AMD EPYC (docs/performance.md). MKL reads
 #: the variable at its first call, so it is set when dks_gym is imported (``import dks_gym`` before your first
 #: torch product); a value of your own is kept.
 BLAS_REPRODUCIBILITY = ("MKL_CBWR", "AUTO,STRICT")
