@@ -72,8 +72,7 @@ def jacobian_variance(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor,
     vmapped over the columns), in chunks of elements and columns holding at most :data:`CHUNK_NUMBERS`
     output numbers (plus the decoder's activations); ``G`` itself is never formed.
     """
-    z = z.detach()
-    L = psd_sqrt(0.5 * (P + P.mT)).to(z)
+    z, L = z.detach(), _covariance_factor(P, z)
     own = getattr(model, "decoder_variance", None)
     var = None if own is None else own(z, torch.as_tensor(mu, device=z.device), L)
     return _jvp_variance(model, z, mu, L) if var is None else var.flatten(2)
@@ -87,10 +86,14 @@ def decoded_variance(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor,
     own = getattr(model, "decode_with_variance", None)
     if own is None:
         return model.decode(z, mu), jacobian_variance(model, z, mu, P)
-    z = z.detach()
-    L = psd_sqrt(0.5 * (P + P.mT)).to(z)
+    z, L = z.detach(), _covariance_factor(P, z)
     field, var = own(z, torch.as_tensor(mu, device=z.device), L)
     return field, _jvp_variance(model, z, mu, L) if var is None else var.flatten(2)
+
+
+def _covariance_factor(P: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """``L`` with ``L L^T = P`` (symmetrized first: round-off), in ``like``'s dtype and device."""
+    return psd_sqrt(0.5 * (P + P.mT)).to(like)
 
 
 def _jvp_variance(model: FilterableModel, z: torch.Tensor, mu: torch.Tensor, L: torch.Tensor) -> torch.Tensor:

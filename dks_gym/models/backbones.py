@@ -152,10 +152,10 @@ class ConvDecoder(nn.Module):
         rows = max(1, (1 << 17) // cells)
         if h.shape[0] <= rows:
             return self._convolve(h, fast=True, preactivations=preactivations)
-        parts = [[] for _ in h.split(rows)] if preactivations is not None else None
-        out = torch.cat([self._convolve(block, fast=True, preactivations=None if parts is None else parts[j])
-                         for j, block in enumerate(h.split(rows))])
-        if parts is not None:
+        blocks = h.split(rows)
+        parts = [None if preactivations is None else [] for _ in blocks]  # each block's, joined below
+        out = torch.cat([self._convolve(block, fast=True, preactivations=part) for block, part in zip(blocks, parts)])
+        if preactivations is not None:
             preactivations.extend(torch.cat(stage) for stage in zip(*parts))
         return out
 
