@@ -72,7 +72,7 @@ from dks_gym.filters.measurements import check_measurement
 from dks_gym.models import TrainingSchedule, benchmark_shape, build_model, training_schedule
 from dks_gym.models.loss import training_loss
 from dks_gym.models.shipped import find_shipped
-from dks_gym.models.training import adam
+from dks_gym.models.training import adam, adam_step
 from dks_gym.wrappers import LatentFilter, LatentFilterVectorEnv
 
 
@@ -580,9 +580,12 @@ def schedules(benchmark: str, preset: str, kind: str) -> tuple[Any, Any]:
     return TrainingSchedule(**meta["schedule"]), now.resolve(windows)
 
 
-def training_step(benchmark: str, preset: str, kind: str, batch: int, before: bool) -> Callable[[], None]:
-    """One Adam step of a fresh model on a fixed batch of random windows, as ``fit_steps`` takes it; mu from 45
-    values, about as many distinct ones per batch as the training split gives."""
+def training_step(benchmark: str, preset: str, kind: str, schedule: TrainingSchedule,
+                  before: bool) -> Callable[[], None]:
+    """One Adam step of a fresh model on a fixed batch of random windows at ``schedule``'s batch size (its
+    gradients clipped as it says, after), as ``fit_steps`` takes it; mu from 45 values, about as many distinct
+    ones per batch as the training split gives."""
+    batch = schedule.batch_size
     shape = benchmark_shape(benchmark)
     gen = torch.Generator().manual_seed(0)
     cell_type = torch.randint(0, 3, shape.grid, generator=gen).numpy() if shape.has_cell_type else None
@@ -598,9 +601,12 @@ def training_step(benchmark: str, preset: str, kind: str, batch: int, before: bo
     def step() -> None:
         model.train()
         loss, _ = training_loss(model, x, mu)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        if before:
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+        else:
+            adam_step(model, optimizer, loss, schedule.clip_norm)
 
     return step
 
@@ -615,8 +621,8 @@ def training_section(configs: tuple[tuple[str, str], ...], kinds: list[str], rep
     for benchmark, preset in configs:
         for kind in kinds:
             old, new = schedules(benchmark, preset, kind)
-            before = training_step(benchmark, preset, kind, old.batch_size, before=True)
-            after = training_step(benchmark, preset, kind, new.batch_size, before=False)
+            before = training_step(benchmark, preset, kind, old, before=True)
+            after = training_step(benchmark, preset, kind, new, before=False)
             with FlopCounterMode(display=False) as counter:
                 after()
             flops = int(counter.get_total_flops())

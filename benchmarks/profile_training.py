@@ -68,7 +68,7 @@ def run_steps(plan: Any, run: Any, start: int, n: int) -> float:
     tic = time.perf_counter()
     training.fit_steps(state.net, state.optimizer, state.sampler, start=start, steps=start + n,
                        batch_size=plan.schedule.batch_size, losses=state.losses, progress=False,
-                       lr_at=plan.schedule.lr_at)
+                       lr_at=plan.schedule.lr_at, clip_norm=plan.schedule.clip_norm)
     return time.perf_counter() - tic
 
 

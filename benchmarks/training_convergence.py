@@ -8,7 +8,7 @@ to a temporary directory, or with ``--keep`` to the data home, where ``dks-gym t
 shipped lite models were trained with (``perf.before_formulation``, the shipped file's ``schedule``, Adam's
 plain loop): its losses are those of the shipped models' runs bit for bit (the shipped file's best
 validation loss is recorded beside it). Without it, today's package and lite preset, or the preset with
-``--steps``, ``--batch-size``, ``--lr``, ``--warmup`` or ``--validations`` in place of its own (how
+``--steps``, ``--batch-size``, ``--lr``, ``--warmup``, ``--validations`` or ``--clip-norm`` in place of its own (how
 docs/training.md's schedules were compared). ``--pair`` runs each model's before and after run in two
 processes at once, so that a shared machine's load falls on both alike.
 One torch thread unless ``--threads``.
@@ -147,7 +147,8 @@ def main() -> None:
     parser.add_argument("--keep", action="store_true",
                         help="write the checkpoints to the data home, as `dks-gym train` does (not with --before)")
     parser.add_argument("--seed", type=int, default=0)
-    for name, kind in (("steps", int), ("batch-size", int), ("lr", float), ("warmup", float), ("validations", int)):
+    for name, kind in (("steps", int), ("batch-size", int), ("lr", float), ("warmup", float), ("validations", int),
+                       ("clip-norm", float)):
         parser.add_argument(f"--{name}", type=kind, help="in place of the lite preset's (with --steps its epochs "
                             "cap goes; its patience stays)" if name == "steps" else "in place of the lite preset's")
     parser.add_argument("--threads", type=int, default=1)
@@ -171,7 +172,8 @@ def main() -> None:
                               "runs": []}
     changes = {field: value for field, value in (("steps", args.steps), ("batch_size", args.batch_size),
                                                   ("lr", args.lr), ("warmup", args.warmup),
-                                                  ("validations", args.validations)) if value is not None}
+                                                  ("validations", args.validations),
+                                                  ("clip_norm", args.clip_norm)) if value is not None}
     if changes and args.before:
         parser.error("--before trains with the shipped models' schedule; it takes no schedule options")
     schedule = dataclasses.replace(training_schedule(args.benchmark, "lite"), **changes) if changes else None

@@ -293,6 +293,39 @@ def test_learning_rate_warms_up_then_decays_along_a_cosine():
     assert lite.resolve(495).steps == 929 and lite.resolve(4455).steps == 8000  # 60 epochs, at most 8000 steps
 
 
+def test_adam_step_clips_the_gradients_global_norm():
+    """With plain SGD at lr 1 the step is the clipped gradient itself: g * min(1, c / |g|), |g| over all tensors."""
+    from dks_gym.models.training import adam_step
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.GELU(), torch.nn.Linear(4, 2))
+    x = torch.randn(5, 3)
+    grads = torch.autograd.grad(net(x).pow(2).sum(), list(net.parameters()))
+    norm = np.sqrt(sum(float((g.double() ** 2).sum()) for g in grads))
+    for clip, scale in ((None, 1.0), (10 * norm, 1.0), (0.25 * norm, 0.25)):
+        before = [p.detach().clone() for p in net.parameters()]
+        adam_step(net, torch.optim.SGD(net.parameters(), lr=1.0), net(x).pow(2).sum(), clip)
+        for p, p0, g in zip(net.parameters(), before, grads):
+            torch.testing.assert_close(p0 - p.detach(), scale * g, rtol=1e-5, atol=1e-7)
+            p.data.copy_(p0)
+
+
+def test_a_schedule_without_clipping_records_as_before_the_field_existed():
+    """Checkpoints written before ``clip_norm`` (the shipped lite ones, paper-preset runs) keep reading as trained
+    with their schedule, so they are neither retrained nor refused on resume; a clipping schedule records it."""
+    from dks_gym.models.schedule import TrainingSchedule
+    from dks_gym.models.shipped import find_shipped
+
+    paper = training_schedule("burgers", "paper").record()
+    assert "clip_norm" not in paper and TrainingSchedule(**paper).record() == paper
+    shipped = find_shipped("dambreak", "koopman").metadata
+    assert shipped["schedule"] == TrainingSchedule(**shipped["schedule"]).record()
+    assert shipped["preset_schedule"] == training_schedule("dambreak", "lite").record()  # unchanged: no clipping
+    assert training_schedule("burgers", "lite").record()["clip_norm"] == 0.1
+    with pytest.raises(ValueError, match="clip_norm must be positive"):
+        TrainingSchedule(10, 4, 1e-3, clip_norm=0.0).check()
+
+
 def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_path):
     from dks_gym.models.checkpoint import loss_curve_path
     from dks_gym.models.validation import ValidationMonitor, validation_trajectories

@@ -71,6 +71,18 @@ def adam(net: torch.nn.Module, lr: float) -> torch.optim.Adam:
     return torch.optim.Adam(net.parameters(), lr=lr, foreach=True)
 
 
+def adam_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer, loss: torch.Tensor,
+              clip_norm: float | None = None) -> None:
+    """One optimizer step on ``loss``: the gradients, clipped to the global norm ``clip_norm`` where given
+    (the lite schedules': it lets them run at a higher learning rate without the loss spikes that collapsed
+    some runs to the mean field, docs/training.md), then the update."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if clip_norm is not None:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), clip_norm, foreach=True)
+    optimizer.step()
+
+
 @dataclass
 class TrainingResult:
     """What :func:`train_model` returns."""
@@ -164,10 +176,12 @@ def fit_steps(
     on_step: Callable[[int, torch.Tensor], None] | None = None,
     lr_at: Callable[[int], float] | None = None,
     monitor: ValidationMonitor | None = None,
+    clip_norm: float | None = None,
 ) -> int:
     """Adam steps ``start`` .. ``steps`` - 1; ``losses`` gets one (4,) tensor per step (see LOSS_TERMS).
 
-    ``lr_at(step)`` sets the learning rate of each step; ``monitor`` validates every ``eval_every`` steps and
+    ``lr_at(step)`` sets the learning rate of each step; ``clip_norm`` clips the gradients (:func:`adam_step`);
+    ``monitor`` validates every ``eval_every`` steps and
     ends the run early when its patience runs out. Returns the number of steps done.
     """
     from tqdm.auto import tqdm
@@ -185,9 +199,7 @@ def fit_steps(
             x = x.to(device, non_blocking=True)
             mu = mu.to(device)
             loss, terms = training_loss(model, x, mu)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+            adam_step(model, optimizer, loss, clip_norm)
             losses.append(terms)
             done = step + 1
             if on_step is not None:
@@ -272,7 +284,7 @@ def train_model(
             run.state.net, run.state.optimizer, run.state.sampler, start=run.start, steps=plan.schedule.steps,
             batch_size=plan.schedule.batch_size, losses=run.state.losses, checkpoint=run.checkpoint,
             checkpoint_every=plan.checkpoint_every, progress=progress, description=plan.label, on_step=on_step,
-            lr_at=plan.schedule.lr_at, monitor=run.state.monitor,
+            lr_at=plan.schedule.lr_at, monitor=run.state.monitor, clip_norm=plan.schedule.clip_norm,
         )
         return finish_training(run, done, start_time)
 
@@ -380,6 +392,7 @@ __all__ = [
     "TrainingResult",
     "TrainingRun",
     "adam",
+    "adam_step",
     "finish_training",
     "fit_steps",
     "plan_training",
