@@ -14,7 +14,7 @@ script wraps around the phases at run time (the package is not changed):
   ``aten::linalg_matrix_exp`` and backward are reported apart, zero now);
 - decoder: ``decode_normalized``;
 - loss: the rest of ``training_loss`` (targets, stacking, the three means);
-- backward: ``Tensor.backward``; optimizer: Adam's ``zero_grad`` and ``step``;
+- backward: ``Tensor.backward``; optimizer: Adam's ``zero_grad``, the gradients' clipping and ``step``;
 - rest: the step's wall time less the phases above (the loop, the learning-rate update, moving the batch).
 
 ``outside torch ops`` is the step's wall time less the time inside top-level ``aten::`` operators: the Python
@@ -87,7 +87,8 @@ def phase_labels(run: Any) -> Iterator[None]:
     net, optimizer = run.state.net, run.state.optimizer
     targets = [(run.state.sampler, "sample", "sampling"), (net, "encode", "encoder"),
                (net, "forecast", "latent map"), (net, "decode_normalized", "decoder"),
-               (optimizer, "zero_grad", "optimizer"), (optimizer, "step", "optimizer"),
+               (optimizer, "zero_grad", "optimizer"), (torch.nn.utils, "clip_grad_norm_", "optimizer"),
+               (optimizer, "step", "optimizer"),
                (training, "training_loss", "loss"), (torch.Tensor, "backward", "backward")]
     originals = [(obj, name, getattr(obj, name), name in vars(obj)) for obj, name, _ in targets]
     try:

@@ -150,7 +150,8 @@ def main() -> None:
     for name, kind in (("steps", int), ("batch-size", int), ("lr", float), ("warmup", float), ("validations", int),
                        ("clip-norm", float)):
         parser.add_argument(f"--{name}", type=kind, help="in place of the lite preset's (with --steps its epochs "
-                            "cap goes; its patience stays)" if name == "steps" else "in place of the lite preset's")
+                            "cap goes; its patience stays)" if name == "steps" else "in place of the lite preset's"
+                            + (" (0: no clipping)" if name == "clip-norm" else ""))
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path)
     parser.add_argument("--pair", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
@@ -174,6 +175,8 @@ def main() -> None:
                                                   ("lr", args.lr), ("warmup", args.warmup),
                                                   ("validations", args.validations),
                                                   ("clip_norm", args.clip_norm)) if value is not None}
+    if changes.get("clip_norm") == 0:
+        changes["clip_norm"] = None  # --clip-norm 0: no clipping (the former lite schedules)
     if changes and args.before:
         parser.error("--before trains with the shipped models' schedule; it takes no schedule options")
     schedule = dataclasses.replace(training_schedule(args.benchmark, "lite"), **changes) if changes else None
