@@ -2,7 +2,9 @@
 
 Trains each neural lite model (r = 32, T = 1, seed 0) of one benchmark on its ``paper`` data with
 ``train_model`` and records every validation: the step, the wall and CPU seconds up to that step since
-``train_model`` was called (the validations before it included) and the validation loss. The checkpoints go
+``train_model`` was called (the validations before it included) and the validation loss; and, after it, the
+forward run's final MSE over the test split (frame 0 encoded, the latent map rolled to the last frame, decoded;
+the one-step validation loss does not pin it). The checkpoints go
 to a temporary directory, or with ``--keep`` to the data home, where ``dks-gym train`` writes them
 (``dks-gym demo --train`` then takes them). ``--before`` trains in the formulation and with the schedule the
 shipped lite models were trained with (``perf.before_formulation``, the shipped file's ``schedule``, Adam's
@@ -42,6 +44,8 @@ from dks_gym.models.checkpoint import read_checkpoint
 from dks_gym.models.shipped import find_shipped
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(1, str(Path(__file__).parent.parent / "validation"))
+from forecast_vs_persistence import forecast_errors  # noqa: E402  (the one decoded-forecast error)
 from perf import before_formulation  # noqa: E402  (the one definition of "before")
 
 
@@ -83,13 +87,17 @@ def run(benchmark: str, kind: str, before: bool, keep: bool = False, seed: int =
         kwargs = {"path": path, "progress": False, "resume": False, "on_step": on_step, "seed": seed}
         result = (train_before(benchmark, kind, dataset, **kwargs) if before else
                   train_model(benchmark, kind, 32, "lite", 1, dataset=dataset, schedule=schedule, **kwargs))
+        wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
         ckpt = read_checkpoint(result.path, optimizer=False)
     validation = ckpt.training["validation"].tolist()
     meta = ckpt.metadata
+    # The one-step validation loss does not pin the long horizon: the whole test trajectories' forward run
+    # (encode frame 0, roll the latent map to the last frame, decode; MSE over the test trajectories).
+    forward = forecast_errors(result.model, dataset, dataset.n_frames - 1, dataset.n_frames)["model_mse"]
     return {"model": kind, "seed": seed, "schedule": meta["schedule"], "steps_done": result.steps_done,
-            "train_time_s": meta["train_time_s"], "wall_s": time.perf_counter() - start,
-            "cpu_s": time.process_time() - cpu_start, "best_validation_loss": result.best_validation_loss,
-            "best_step": meta["best_step"], "stopped_early": result.stopped_early,
+            "train_time_s": meta["train_time_s"], "wall_s": wall, "cpu_s": cpu,
+            "best_validation_loss": result.best_validation_loss,
+            "best_step": meta["best_step"], "stopped_early": result.stopped_early, "forward_run_mse": forward,
             "shipped_best_validation_loss": find_shipped(benchmark, kind).metadata["best_validation_loss"],
             "validation": [[int(row[0]), *times[int(row[0])], row[1]] for row in validation]}
 
@@ -115,16 +123,18 @@ def plot(before: dict[str, Any], after: dict[str, Any], figure: Path) -> None:
     fig.savefig(figure)
 
 
-def pair(benchmark: str, models: list[str], threads: int, before_out: Path, after_out: Path) -> None:
-    """For each model in turn, the before run and the after run (``--keep``) in two processes at once; their
-    results gathered into ``before_out`` and ``after_out``."""
+def pair(benchmark: str, models: list[str], threads: int, before_out: Path, after_out: Path,
+         after_options: list[str]) -> None:
+    """For each model in turn, the before run and the after run (``--keep``, with ``after_options``: the
+    schedule options given) in two processes at once; their results gathered into ``before_out`` and
+    ``after_out``."""
     results: dict[Path, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for kind in models:
             outs = {before_out: Path(tmp) / f"{kind}-before.json", after_out: Path(tmp) / f"{kind}-after.json"}
+            role = {before_out: ["--before"], after_out: ["--keep", *after_options]}
             procs = [subprocess.Popen([sys.executable, __file__, benchmark, "--models", kind, "--threads",
-                                       str(threads), "--before" if out == before_out else "--keep", "--out",
-                                       str(part)]) for out, part in outs.items()]
+                                       str(threads), *role[out], "--out", str(part)]) for out, part in outs.items()]
             if any(proc.wait() for proc in procs):
                 raise SystemExit(f"a {benchmark} {kind} run failed")
             for out, part in outs.items():
@@ -155,7 +165,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path)
     parser.add_argument("--pair", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
-                        help="train each model before and after in two processes side by side (after with --keep)")
+                        help="train each model before and after in two processes side by side (after with --keep "
+                             "and the schedule options given)")
     parser.add_argument("--plot", nargs=2, type=Path, metavar=("BEFORE", "AFTER"))
     parser.add_argument("--figure", type=Path)
     args = parser.parse_args()
@@ -164,7 +175,11 @@ def main() -> None:
         plot(before, after, args.figure)
         return
     if args.pair:
-        pair(args.benchmark, args.models, args.threads, *args.pair)
+        options = [f"--{name}={value}" for name, value in (("steps", args.steps), ("batch-size", args.batch_size),
+                                                            ("lr", args.lr), ("warmup", args.warmup),
+                                                            ("validations", args.validations),
+                                                            ("clip-norm", args.clip_norm)) if value is not None]
+        pair(args.benchmark, args.models, args.threads, *args.pair, options)
         return
     torch.set_num_threads(args.threads)
     result: dict[str, Any] = {"benchmark": args.benchmark, "before": args.before, "torch": torch.__version__,
@@ -187,7 +202,8 @@ def main() -> None:
                                   schedule))
         row = result["runs"][-1]
         print(f"{args.benchmark} {kind}: best validation loss {row['best_validation_loss']:.4g} at step "
-              f"{row['best_step']} of {row['steps_done']}, {row['wall_s']:.0f} s wall, {row['cpu_s']:.0f} s CPU "
+              f"{row['best_step']} of {row['steps_done']}, {row['wall_s']:.0f} s wall, {row['cpu_s']:.0f} s CPU, "
+              f"forward run's final MSE {row['forward_run_mse']:.3g} "
               f"(shipped model: {row['shipped_best_validation_loss']:.4g})", flush=True)
     result["loadavg_end"] = list(os.getloadavg())
     args.out.parent.mkdir(parents=True, exist_ok=True)
