@@ -149,6 +149,11 @@ def pair(benchmark: str, models: list[str], threads: int, before_out: Path, afte
         atomic_write_text(out, json.dumps(dict(result, command=command), indent=1) + "\n")
 
 
+#: The options that replace a field of the lite preset's schedule (the field: the name with "_" for "-").
+SCHEDULE_OPTIONS = (("steps", int), ("batch-size", int), ("lr", float), ("warmup", float), ("validations", int),
+                    ("clip-norm", float))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("benchmark", nargs="?", choices=["burgers", "cylinder", "dambreak"])
@@ -157,8 +162,7 @@ def main() -> None:
     parser.add_argument("--keep", action="store_true",
                         help="write the checkpoints to the data home, as `dks-gym train` does (not with --before)")
     parser.add_argument("--seed", type=int, default=0)
-    for name, kind in (("steps", int), ("batch-size", int), ("lr", float), ("warmup", float), ("validations", int),
-                       ("clip-norm", float)):
+    for name, kind in SCHEDULE_OPTIONS:
         parser.add_argument(f"--{name}", type=kind, help="in place of the lite preset's (with --steps its epochs "
                             "cap goes; its patience stays)" if name == "steps" else "in place of the lite preset's"
                             + (" (0: no clipping)" if name == "clip-norm" else ""))
@@ -174,11 +178,11 @@ def main() -> None:
         before, after = (json.loads(p.read_text()) for p in args.plot)
         plot(before, after, args.figure)
         return
+    # The schedule options given, by their command-line names.
+    given = {name: value for name, _ in SCHEDULE_OPTIONS
+             if (value := getattr(args, name.replace("-", "_"))) is not None}
     if args.pair:
-        options = [f"--{name}={value}" for name, value in (("steps", args.steps), ("batch-size", args.batch_size),
-                                                            ("lr", args.lr), ("warmup", args.warmup),
-                                                            ("validations", args.validations),
-                                                            ("clip-norm", args.clip_norm)) if value is not None]
+        options = [f"--{name}={value}" for name, value in given.items()]
         pair(args.benchmark, args.models, args.threads, *args.pair, options)
         return
     torch.set_num_threads(args.threads)
@@ -186,10 +190,7 @@ def main() -> None:
                               "threads": args.threads, "loadavg_start": list(os.getloadavg()),
                               "command": " ".join(["python benchmarks/training_convergence.py", *sys.argv[1:]]),
                               "runs": []}
-    changes = {field: value for field, value in (("steps", args.steps), ("batch_size", args.batch_size),
-                                                  ("lr", args.lr), ("warmup", args.warmup),
-                                                  ("validations", args.validations),
-                                                  ("clip_norm", args.clip_norm)) if value is not None}
+    changes = {name.replace("-", "_"): value for name, value in given.items()}
     if changes.get("clip_norm") == 0:
         changes["clip_norm"] = None  # --clip-norm 0: no clipping (the former lite schedules)
     if changes and args.before:
