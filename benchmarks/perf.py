@@ -26,7 +26,9 @@ keeps every rep's median and the ratio. Sections:
   after (today's), on random windows at each schedule's batch size; the step ratio is the median of the
   per-rep ratios (each rep times the two steps next to each other), the training ratio the step ratio times
   the ratio of the schedules' step counts (validation passes, under 5 % of a run, left out), and the after
-  step's FLOPs (``torch.utils.flop_counter``) give its rate against the matmul peak.
+  step's FLOPs (``torch.utils.flop_counter``) give its rate against the matmul peak; beside them the after
+  step with its forward pass under CPU bfloat16 autocast (``bf16_autocast_over_after``: how much faster; an
+  alternative measured, not how dks-gym trains).
 
     OMP_NUM_THREADS=1 python benchmarks/perf.py                  # benchmarks/results/perf.json
     OMP_NUM_THREADS=1 python benchmarks/perf.py --quick --out /tmp/perf.json   # a smoke run (seconds)
@@ -103,7 +105,10 @@ def med(values: list[float]) -> float:
 def machine(threads: int) -> dict[str, Any]:
     return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
             "cpu_count": os.cpu_count(), "python": platform.python_version(), "torch": torch.__version__,
-            "torch_threads": threads, "loadavg_start": list(os.getloadavg())}
+            "torch_threads": threads, "loadavg_start": list(os.getloadavg()),
+            # Whether bfloat16 runs natively (the training section's autocast alternative depends on it).
+            "cpu_bf16": {"avx512_bf16": torch.cpu._is_avx512_bf16_supported(),
+                         "amx_tile": torch.cpu._is_amx_tile_supported()}}
 
 
 _A, _B = torch.randn(1024, 1024), torch.randn(1024, 1024)
@@ -581,10 +586,11 @@ def schedules(benchmark: str, preset: str, kind: str) -> tuple[Any, Any]:
 
 
 def training_step(benchmark: str, preset: str, kind: str, schedule: TrainingSchedule,
-                  before: bool) -> Callable[[], None]:
+                  before: bool, bf16: bool = False) -> Callable[[], None]:
     """One Adam step of a fresh model on a fixed batch of random windows at ``schedule``'s batch size (its
     gradients clipped as it says), as ``fit_steps`` takes it; mu from 45 values, about as many distinct
-    ones per batch as the training split gives."""
+    ones per batch as the training split gives. ``bf16``: the forward pass under CPU bfloat16 autocast (timed
+    as an alternative; dks-gym trains in float32)."""
     batch = schedule.batch_size
     shape = benchmark_shape(benchmark)
     gen = torch.Generator().manual_seed(0)
@@ -600,7 +606,8 @@ def training_step(benchmark: str, preset: str, kind: str, schedule: TrainingSche
 
     def step() -> None:
         model.train()
-        loss, _ = training_loss(model, x, mu)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            loss, _ = training_loss(model, x, mu)
         adam_step(model, optimizer, loss, schedule.clip_norm)  # before: the shipped file's schedule, unclipped
 
     return step
@@ -618,17 +625,21 @@ def training_section(configs: tuple[tuple[str, str], ...], kinds: list[str], rep
             old, new = schedules(benchmark, preset, kind)
             before = training_step(benchmark, preset, kind, old, before=True)
             after = training_step(benchmark, preset, kind, new, before=False)
+            after_bf16 = training_step(benchmark, preset, kind, new, before=False, bf16=True)
             with FlopCounterMode(display=False) as counter:
                 after()
             flops = int(counter.get_total_flops())
-            times = interleaved({"before": before, "after": after, "matmul": matmul}, reps, inner)
+            times = interleaved({"before": before, "after": after, "after_bf16": after_bf16, "matmul": matmul},
+                                reps, inner)
             peak = gflops(MATMUL_FLOPS, med(times.pop("matmul")))  # beside the steps, under the same load
             # Each rep's two steps ran next to each other: the median of the per-rep ratios cancels most of a
             # neighbour's load, which moves single timings by 2x on a shared machine.
             step_ratio = med([b / a for b, a in zip(times["before"], times["after"])])
             wall = {"before_s": old.steps * med(times["before"]) / 1e3,
                     "after_s": new.steps * med(times["after"]) / 1e3}  # at the medians of the timings
+            bf16_ratio = med([a / b for a, b in zip(times["after"], times["after_bf16"])])
             rows.append({"benchmark": benchmark, "preset": preset, "model": kind, "ms": times, "step_ratio": step_ratio,
+                         "bf16_autocast_over_after": bf16_ratio,
                          "schedule_before": old.record(), "schedule_after": new.record(),
                          "steps_before": old.steps, "steps_after": new.steps, "training_s_estimate": wall,
                          "training_ratio": step_ratio * old.steps / new.steps, "flops_after": flops,
