@@ -35,7 +35,7 @@ keeps every rep's median and the ratio. Sections:
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections enkf vector --filters enkf   # refresh those entries
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections torchkf   # that section alone, the others kept
     OMP_NUM_THREADS=1 python benchmarks/perf.py --sections uncertainty --sizes 16 256   # one section, merged in
-    OMP_NUM_THREADS=1 python benchmarks/perf.py --sections training --reps 7   # the training entry, about 5 min
+    OMP_NUM_THREADS=1 python benchmarks/perf.py --sections training --reps 7   # the training entry, about 2 min
 
 ``--sections`` (and ``--filters`` for the vector section) run only some of it and refresh only their entries of an
 existing ``--out`` (the vector section's rows by filter and N); the rest of the file is kept, and each refreshed
