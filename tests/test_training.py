@@ -329,8 +329,9 @@ def test_a_schedule_without_clipping_records_as_before_the_field_existed():
         TrainingSchedule(10, 4, 1e-3, clip_norm=0.0).check()
 
 
-def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_path):
+def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_path, monkeypatch):
     from dks_gym.models.checkpoint import loss_curve_path
+    from dks_gym.models.schedule import TrainingSchedule
     from dks_gym.models.validation import ValidationMonitor, validation_trajectories
 
     held_out = validation_trajectories(ds.n_trajectories("train"), 0.1, seed=3)
@@ -341,7 +342,10 @@ def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_
         seen.update(sampler.draw(8)[0].tolist())
     assert not seen & set(held_out)
 
-    # A learning rate high enough, and no clipping, so that the last weights are not the best ones.
+    # From step 40 on, Adam moves every weight by about 1 per step: the last weights are not the best ones,
+    # whatever the round-off of the machine (a high learning rate's spikes alone depend on it).
+    lr_at = TrainingSchedule.lr_at
+    monkeypatch.setattr(TrainingSchedule, "lr_at", lambda self, step: lr_at(self, step) if step < 40 else 1.0)
     schedule = dataclasses.replace(training_schedule("burgers", "lite", steps=60, batch_size=8, lr=0.03),
                                    clip_norm=None)
     result = train_model("burgers", "mlp", R, "lite", dataset=ds, seed=3, progress=False,
@@ -354,7 +358,7 @@ def test_validation_trajectories_are_held_out_and_the_best_weights_kept(ds, tmp_
     history = read_checkpoint(result.path).training["validation"]
     assert history.shape[1] == 5 and len(history) >= 10
     best = int(torch.argmin(history[:, 1]))
-    assert meta["best_step"] == int(history[best, 0]) < 60
+    assert meta["best_step"] == int(history[best, 0]) <= 40
     # The weights stored (and returned) are the best ones: their validation loss is the history's minimum.
     monitor = ValidationMonitor(ds, held_out, 1, eval_every=1, patience=0, batch_size=8, seed=3)
     loaded = load_model("burgers", "mlp", R, "lite", path=result.path)
