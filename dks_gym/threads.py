@@ -80,6 +80,25 @@ def threads_for(task: str) -> int | None:
 
 
 @contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """Run the body with numpy's and scipy's BLAS and LAPACK (the OpenBLAS they bundle, or an MKL) on one
+    thread, then restore their counts.
+
+    MKL's strict mode (above) pins torch's products, not these libraries: OpenBLAS splits a product's sums by
+    thread. Where a solve is ill-conditioned that shows: the pDMD interpolant of the dambreak's 90
+    viscosities moved by up to 5e-4 of its largest coefficient between one BLAS thread and two, and its
+    EnKF's final coverage from 0.78 to 0.85 (``dks-gym expected dambreak --check`` under
+    ``OMP_NUM_THREADS=2``). That algebra is small: on one thread the dambreak's pDMD fit and its 11 test
+    operators took 126 ms against 139 ms on two. Entering the context takes about 0.3 ms, so it wraps work
+    that is cached, not every filter step.
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+@contextmanager
 def torch_threads(task: str) -> Iterator[None]:
     """Run the body with :func:`threads_for` ``(task)`` torch threads, then restore the previous count."""
     import torch

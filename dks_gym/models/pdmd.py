@@ -57,6 +57,7 @@ import numpy as np
 import torch
 
 from ..dataset import Dataset
+from ..threads import one_blas_thread
 from .latent_model import ArrayLike, LatentModel
 from .pod import streamed_pod
 from .presets import BenchmarkShape
@@ -250,33 +251,38 @@ class PDMD(LatentModel):
         """The fitted ``pydmd.ParametricDMD`` (rebuilt from the stored coefficients after loading)."""
         self._require_fitted()
         if self._pdmd is None:
-            from pydmd import DMD, ParametricDMD
-
-            from .rbf import MultiquadricRBF
-
-            coeffs = np.ascontiguousarray(self.train_coefficients.detach().cpu().numpy().transpose(0, 2, 1))
-            pdmd = ParametricDMD(
-                DMD(svd_rank=self.r, tikhonov_regularization=self._pydmd_tikhonov(coeffs)),
-                _ReducedCoordinates(),
-                MultiquadricRBF(smoothing=self.rbf_smoothing),
-            )
-            # PyDMD warns when the stacked coefficients' condition number exceeds 1e5, which POD coefficients
-            # of smooth flows always do; the rank-r truncation and ``dmd_tikhonov`` are what handle it. Keep
-            # the number as a diagnostic (``dmd_condition_number``) instead of repeating the warning.
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                # a copy: PyDMD keeps the array, and a view would dangle once torch moves the tensor's storage
-                # (share_memory_(), which a process pool's pickler calls)
-                pdmd.fit(coeffs, self.train_params.cpu().numpy().copy())
-            self.dmd_condition_number = None
-            for w in caught:
-                found = _CONDITION_WARNING.match(str(w.message))
-                if found:
-                    self.dmd_condition_number = float(found.group(1))
-                else:
-                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-            self._pdmd = pdmd
+            with one_blas_thread():  # the same fit whatever numpy's thread count (dks_gym.threads)
+                self._pdmd = self._fit_parametric_dmd()
         return self._pdmd
+
+    def _fit_parametric_dmd(self) -> Any:
+        """PyDMD's monolithic ``ParametricDMD`` with the RBF interpolant, fitted to the stored coefficients."""
+        from pydmd import DMD, ParametricDMD
+
+        from .rbf import MultiquadricRBF
+
+        coeffs = np.ascontiguousarray(self.train_coefficients.detach().cpu().numpy().transpose(0, 2, 1))
+        pdmd = ParametricDMD(
+            DMD(svd_rank=self.r, tikhonov_regularization=self._pydmd_tikhonov(coeffs)),
+            _ReducedCoordinates(),
+            MultiquadricRBF(smoothing=self.rbf_smoothing),
+        )
+        # PyDMD warns when the stacked coefficients' condition number exceeds 1e5, which POD coefficients
+        # of smooth flows always do; the rank-r truncation and ``dmd_tikhonov`` are what handle it. Keep
+        # the number as a diagnostic (``dmd_condition_number``) instead of repeating the warning.
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            # a copy: PyDMD keeps the array, and a view would dangle once torch moves the tensor's storage
+            # (share_memory_(), which a process pool's pickler calls)
+            pdmd.fit(coeffs, self.train_params.cpu().numpy().copy())
+        self.dmd_condition_number = None
+        for w in caught:
+            found = _CONDITION_WARNING.match(str(w.message))
+            if found:
+                self.dmd_condition_number = float(found.group(1))
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        return pdmd
 
     def _pydmd_tikhonov(self, coeffs: np.ndarray) -> float | None:
         """PyDMD's ``tikhonov_regularization`` for ``dmd_tikhonov``, from coefficients (n_traj, r, n_t).
@@ -295,7 +301,8 @@ class PDMD(LatentModel):
         """z_k(mu) of Eq. A3 for every training time step, (n_mu, n_t, r) float64 (DMD then RBF in mu)."""
         pdmd = self.parametric_dmd()
         pdmd.parameters = np.atleast_1d(np.asarray(mu, dtype=np.float64))
-        coeffs = pdmd.interpolated_modal_coefficients  # (n_mu, r, n_t), complex from the DMD modes
+        with one_blas_thread():  # the RBF's ill-conditioned solve moves with the thread count otherwise
+            coeffs = pdmd.interpolated_modal_coefficients  # (n_mu, r, n_t), complex from the DMD modes
         return np.ascontiguousarray(np.real(coeffs).transpose(0, 2, 1))
 
     def online_operator(self, mu: ArrayLike) -> torch.Tensor:
@@ -333,7 +340,9 @@ class PDMD(LatentModel):
         """The DMD-forecast coefficients of the training parameters that Eq. A3 interpolates, (n_train, n_t, r)."""
         if self._forecast_cache is None:
             pdmd = self.parametric_dmd()
-            forecast = np.real(pdmd._predict_modal_coefficients()).reshape(len(self.train_params), self.r, -1)
+            with one_blas_thread():
+                forecast = pdmd._predict_modal_coefficients()
+            forecast = np.real(forecast).reshape(len(self.train_params), self.r, -1)
             self._forecast_cache = torch.as_tensor(np.ascontiguousarray(forecast.transpose(0, 2, 1)))
         return self._forecast_cache.to(self.stats_mean.device)
 
@@ -346,12 +355,13 @@ class PDMD(LatentModel):
         """
         z = np.asarray(coefficients, dtype=np.float64)
         z0, z1 = z[:-1].T, z[1:].T  # (r, n_t - 1)
-        if self.pinv_rtol is not None:
-            return z1 @ np.linalg.pinv(z0, rcond=self.pinv_rtol)
-        u, s, vt = np.linalg.svd(z0, full_matrices=False)
-        lam2 = (self.operator_tikhonov * s[0]) ** 2 if s.size else 0.0
-        filt = np.divide(s, s * s + lam2, out=np.zeros_like(s), where=s > 0)
-        return (z1 @ vt.T * filt) @ u.T
+        with one_blas_thread():
+            if self.pinv_rtol is not None:
+                return z1 @ np.linalg.pinv(z0, rcond=self.pinv_rtol)
+            u, s, vt = np.linalg.svd(z0, full_matrices=False)
+            lam2 = (self.operator_tikhonov * s[0]) ** 2 if s.size else 0.0
+            filt = np.divide(s, s * s + lam2, out=np.zeros_like(s), where=s > 0)
+            return (z1 @ vt.T * filt) @ u.T
 
     # Interface ------------------------------------------------------------------------------------
     def encode(self, x: ArrayLike, mu: ArrayLike | None = None) -> torch.Tensor:
